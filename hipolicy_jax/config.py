@@ -1,0 +1,286 @@
+"""Frozen configuration dataclasses for hipolicy_jax.
+
+Every config is immutable and validates itself in ``__post_init__``: a bad value raises ``ValueError`` naming the
+field and what was expected. Derived quantities are properties, never written back. The top-level ``Config`` is what
+``tyro`` exposes on the command line (``--chunk.strides 1 2 4``, ``--model.size paper``, ...).
+
+Frequency layout
+----------------
+``ChunkConfig.strides`` is strictly ascending (1, 2, 3): stride 1 is the highest frequency (the control rate).
+The action chunk the model predicts concatenates one ``chunk_len`` segment per stride along time, from the lowest
+to the highest frequency, i.e. in *descending* stride order (``segment_strides`` = (3, 2, 1)), as the reference
+release does. Every per-frequency axis in the code base (observation windows, conditions, FiLM parameters) uses
+this segment order. With a single stride the model is exactly a single-frequency Diffusion Policy.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+ObsType = Literal["state", "image", "pointcloud"]
+ConditionMode = Literal["hier", "low", "high"]
+PredictionType = Literal["epsilon", "sample"]
+SamplerKind = Literal["ddpm", "ddim"]
+ModelSize = Literal["cpu", "paper", "tiny"]
+
+
+def _require(cond: bool, field: str, msg: str) -> None:
+    if not cond:
+        raise ValueError(f"{field}: {msg}")
+
+
+@dataclasses.dataclass(frozen=True)
+class ChunkConfig:
+    """Multi-frequency observation windows and action chunks.
+
+    For a current index t and stride s: observation frames o[t-(L_h-1)s], ..., o[t-s], o[t] and action frames
+    a[t+δ], a[t+δ+s], ..., a[t+δ+(L_c-1)s] with δ = ``action_offset``.
+    """
+
+    strides: tuple[int, ...] = (1, 2, 3)
+    obs_horizon: int = 3  # L_h
+    chunk_len: int = 8  # L_c
+    action_offset: int = 1  # δ ∈ {0, 1}; the release predicts from the step after the current frame
+
+    def __post_init__(self):
+        s = tuple(self.strides)
+        _require(len(s) >= 1, "chunk.strides", "needs at least one stride")
+        _require(all(isinstance(x, int) and x >= 1 for x in s), "chunk.strides",
+                 f"must be positive integers, got {s}")
+        _require(all(a < b for a, b in zip(s, s[1:])), "chunk.strides", f"must be strictly ascending, got {s}")
+        _require(self.obs_horizon >= 1, "chunk.obs_horizon", f"(L_h) must be >= 1, got {self.obs_horizon}")
+        _require(self.chunk_len >= 1, "chunk.chunk_len", f"(L_c) must be >= 1, got {self.chunk_len}")
+        _require(self.action_offset in (0, 1), "chunk.action_offset", f"must be 0 or 1, got {self.action_offset}")
+        object.__setattr__(self, "strides", s)
+
+    @property
+    def num_freqs(self) -> int:
+        """M, the number of frequencies."""
+        return len(self.strides)
+
+    @property
+    def segment_strides(self) -> tuple[int, ...]:
+        """Strides in chunk-segment order: lowest frequency (largest stride) first."""
+        return tuple(sorted(self.strides, reverse=True))
+
+    @property
+    def horizon(self) -> int:
+        """Length of the concatenated chunk, M·L_c."""
+        return self.num_freqs * self.chunk_len
+
+    @property
+    def obs_span(self) -> int:
+        """Base-rate frames of history needed to serve every stride: (L_h-1)·max(s) + 1."""
+        return (self.obs_horizon - 1) * max(self.strides) + 1
+
+    @property
+    def action_span(self) -> int:
+        """Base-rate action steps covered by the longest chunk: δ + (L_c-1)·max(s) + 1."""
+        return self.action_offset + (self.chunk_len - 1) * max(self.strides) + 1
+
+
+# Named U-Net sizes: (down_dims, kernel_size, step_embed_dim).
+MODEL_SIZES: dict[str, tuple[tuple[int, ...], int, int]] = {
+    "paper": ((256, 512, 1024), 5, 128),
+    "cpu": ((64, 128, 256), 5, 64),
+    "tiny": ((16, 32), 3, 16),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class EncoderConfig:
+    """Observation encoders. ``obs_type`` picks state-only, image (+state) or point cloud (+state)."""
+
+    obs_type: ObsType = "state"
+    state_hidden: tuple[int, ...] = (256, 256)  # low-dim MLP hidden sizes
+    state_out: int = 64  # per-frame feature size of the state MLP
+    # image encoder (ResNet-18 style trunk with GroupNorm, spatial softmax)
+    image_size: int = 84  # input H = W
+    crop_size: int = 76  # random crop in training, centre crop at evaluation
+    image_channels: tuple[int, ...] = (64, 128, 256, 512)  # ResNet stage widths; "cpu" configs use smaller
+    num_keypoints: int = 32
+    image_out: int = 64
+    # point-cloud encoder (DP3)
+    num_points: int = 512
+    point_dims: int = 3  # 3 = xyz, 6 = xyz+rgb
+    point_out: int = 64
+
+    def __post_init__(self):
+        _require(self.obs_type in ("state", "image", "pointcloud"), "encoder.obs_type",
+                 f"must be 'state', 'image' or 'pointcloud', got {self.obs_type!r}")
+        _require(0 < self.crop_size <= self.image_size, "encoder.crop_size",
+                 f"must be in (0, image_size={self.image_size}], got {self.crop_size}")
+        _require(self.point_dims in (3, 6), "encoder.point_dims", f"must be 3 (xyz) or 6 (xyz+rgb), got {self.point_dims}")
+        _require(self.num_points >= 1, "encoder.num_points", f"must be >= 1, got {self.num_points}")
+        _require(len(self.image_channels) >= 1, "encoder.image_channels", "needs at least one stage")
+        _require(self.num_keypoints >= 1, "encoder.num_keypoints", f"must be >= 1, got {self.num_keypoints}")
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    """Conditional 1D U-Net denoiser (Diffusion Policy semantics) with HiPolicy's hierarchical FiLM and fusion.
+
+    ``down_dims`` / ``kernel_size`` / ``step_embed_dim`` left as None take the values of the named ``size``.
+    """
+
+    size: ModelSize = "cpu"
+    down_dims: tuple[int, ...] | None = None
+    kernel_size: int | None = None
+    step_embed_dim: int | None = None
+    n_groups: int = 8
+    condition: ConditionMode = "hier"  # hier: each segment its own frequency's obs; low / high: all segments one
+    fusion: bool = True  # CLS-token attention across frequency segments (inactive when M = 1)
+    fusion_heads: int = 8
+
+    def __post_init__(self):
+        _require(self.size in MODEL_SIZES, "model.size", f"must be one of {sorted(MODEL_SIZES)}, got {self.size!r}")
+        _require(self.condition in ("hier", "low", "high"), "model.condition",
+                 f"must be 'hier', 'low' or 'high', got {self.condition!r}")
+        dims = self.unet_dims
+        _require(len(dims) >= 1 and all(d >= 1 for d in dims), "model.down_dims", f"must be positive, got {dims}")
+        _require(all(d % self.n_groups == 0 for d in dims), "model.down_dims",
+                 f"every width must be divisible by n_groups={self.n_groups}, got {dims}")
+        _require(self.unet_kernel % 2 == 1, "model.kernel_size", f"must be odd, got {self.unet_kernel}")
+        _require(self.unet_step_embed % 2 == 0, "model.step_embed_dim", f"must be even, got {self.unet_step_embed}")
+        _require(self.fusion_heads >= 1, "model.fusion_heads", f"must be >= 1, got {self.fusion_heads}")
+
+    @property
+    def unet_dims(self) -> tuple[int, ...]:
+        return tuple(self.down_dims) if self.down_dims is not None else MODEL_SIZES[self.size][0]
+
+    @property
+    def unet_kernel(self) -> int:
+        return self.kernel_size if self.kernel_size is not None else MODEL_SIZES[self.size][1]
+
+    @property
+    def unet_step_embed(self) -> int:
+        return self.step_embed_dim if self.step_embed_dim is not None else MODEL_SIZES[self.size][2]
+
+    @property
+    def downsample_factor(self) -> int:
+        """Total temporal down-sampling of the U-Net: 2^(levels-1) (the last level does not down-sample)."""
+        return 2 ** (len(self.unet_dims) - 1)
+
+
+@dataclasses.dataclass(frozen=True)
+class DiffusionConfig:
+    """DDPM noise schedule and samplers (Diffusion Policy defaults)."""
+
+    num_train_steps: int = 100
+    beta_schedule: Literal["squaredcos_cap_v2", "linear"] = "squaredcos_cap_v2"
+    beta_start: float = 1e-4  # linear schedule only
+    beta_end: float = 0.02  # linear schedule only
+    prediction_type: PredictionType = "epsilon"  # DP: epsilon; DP3: sample
+    clip_sample: bool = True
+    clip_range: float = 1.0
+    sampler: SamplerKind = "ddpm"
+    num_inference_steps: int = 100  # DDPM uses every train step; DDIM strides through them
+
+    def __post_init__(self):
+        _require(self.num_train_steps >= 1, "diffusion.num_train_steps", f"must be >= 1, got {self.num_train_steps}")
+        _require(self.prediction_type in ("epsilon", "sample"), "diffusion.prediction_type",
+                 f"must be 'epsilon' or 'sample', got {self.prediction_type!r}")
+        _require(self.sampler in ("ddpm", "ddim"), "diffusion.sampler", f"must be 'ddpm' or 'ddim', got {self.sampler!r}")
+        _require(1 <= self.num_inference_steps <= self.num_train_steps, "diffusion.num_inference_steps",
+                 f"must be in [1, num_train_steps={self.num_train_steps}], got {self.num_inference_steps}")
+        _require(self.sampler == "ddim" or self.num_inference_steps == self.num_train_steps,
+                 "diffusion.num_inference_steps",
+                 f"DDPM denoises through all {self.num_train_steps} train steps; use sampler='ddim' for "
+                 f"{self.num_inference_steps} steps")
+        _require(self.beta_schedule in ("squaredcos_cap_v2", "linear"), "diffusion.beta_schedule",
+                 f"must be 'squaredcos_cap_v2' or 'linear', got {self.beta_schedule!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class SamplingConfig:
+    """One-call N-sample sampling and entropy-guided stride selection.
+
+    ``thresholds`` are M+1 ascending entropies (−inf / +inf allowed at the ends). An entropy H in
+    [thresholds[k], thresholds[k+1]) selects the k-th highest frequency, i.e. ``strides[k]``; values outside the
+    outer thresholds clamp to the first / last frequency. ``None`` means "not calibrated": always execute the
+    highest frequency.
+    """
+
+    num_samples: int = 100  # N
+    thresholds: tuple[float, ...] | None = None
+    entropy_eps: float = 1e-6
+
+    def __post_init__(self):
+        _require(self.num_samples >= 1, "sampling.num_samples", f"(N) must be >= 1, got {self.num_samples}")
+        if self.thresholds is not None:
+            t = tuple(float(x) for x in self.thresholds)
+            _require(all(a < b for a, b in zip(t, t[1:])), "sampling.thresholds", f"must be strictly ascending, got {t}")
+            object.__setattr__(self, "thresholds", t)
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Optimiser, schedule, EMA and checkpointing (Diffusion Policy defaults)."""
+
+    batch_size: int = 128
+    num_steps: int = 3000
+    lr: float = 1e-4
+    betas: tuple[float, float] = (0.95, 0.999)
+    weight_decay: float = 1e-6
+    warmup_steps: int = 500
+    grad_clip: float | None = None
+    ema: bool = True
+    ema_power: float = 0.75
+    ema_max_decay: float = 0.9999
+    seed: int = 0
+    log_every: int = 50
+    ckpt_every: int = 1000
+    ckpt_keep: int = 3
+
+    def __post_init__(self):
+        _require(self.batch_size >= 1, "train.batch_size", f"must be >= 1, got {self.batch_size}")
+        _require(self.num_steps >= 1, "train.num_steps", f"must be >= 1, got {self.num_steps}")
+        _require(self.lr > 0, "train.lr", f"must be > 0, got {self.lr}")
+        _require(len(self.betas) == 2 and all(0 <= b < 1 for b in self.betas), "train.betas",
+                 f"must be two values in [0, 1), got {self.betas}")
+        _require(self.warmup_steps >= 0, "train.warmup_steps", f"must be >= 0, got {self.warmup_steps}")
+        _require(self.ckpt_every >= 1, "train.ckpt_every", f"must be >= 1, got {self.ckpt_every}")
+        _require(self.ckpt_keep >= 1, "train.ckpt_keep", f"must be >= 1, got {self.ckpt_keep}")
+        _require(self.log_every >= 1, "train.log_every", f"must be >= 1, got {self.log_every}")
+
+
+@dataclasses.dataclass(frozen=True)
+class PolicyConfig:
+    """Everything that defines a policy: windowing, encoder, denoiser, diffusion and sampling."""
+
+    chunk: ChunkConfig = ChunkConfig()
+    encoder: EncoderConfig = EncoderConfig()
+    model: ModelConfig = ModelConfig()
+    diffusion: DiffusionConfig = DiffusionConfig()
+    sampling: SamplingConfig = SamplingConfig()
+
+    def __post_init__(self):
+        m, lc, f = self.chunk.num_freqs, self.chunk.chunk_len, self.model.downsample_factor
+        # Each frequency segment keeps its own FiLM at every U-Net level, so L_c itself must down-sample cleanly.
+        _require(lc % f == 0, "chunk.chunk_len",
+                 f"(L_c={lc}) must be divisible by the U-Net's down-sampling factor {f} "
+                 f"(2^(len(model.down_dims)-1)) so each frequency segment stays aligned at every level")
+        if self.sampling.thresholds is not None:
+            _require(len(self.sampling.thresholds) == m + 1, "sampling.thresholds",
+                     f"needs M+1={m + 1} values for M={m} strides, got {len(self.sampling.thresholds)}")
+        if self.model.fusion and m > 1:
+            tok = self.model.unet_dims[0] * lc
+            _require(tok % self.model.fusion_heads == 0, "model.fusion_heads",
+                     f"fusion token size down_dims[0]*L_c={tok} must be divisible by fusion_heads={self.model.fusion_heads}")
+
+
+def replace(cfg, **changes):
+    """``dataclasses.replace`` that also accepts dotted keys: ``replace(cfg, **{"chunk.strides": (1,)})``."""
+    nested: dict[str, dict] = {}
+    flat = {}
+    for key, value in changes.items():
+        head, _, rest = key.partition(".")
+        if rest:
+            nested.setdefault(head, {})[rest] = value
+        else:
+            flat[key] = value
+    for head, sub in nested.items():
+        flat[head] = replace(getattr(cfg, head), **sub)
+    return dataclasses.replace(cfg, **flat)
+
