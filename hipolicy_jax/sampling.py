@@ -1,0 +1,121 @@
+"""The one-call N-sample sampler with entropy-guided frequency selection.
+
+``sample`` is the only sampler in the code base: evaluation, benchmarks, calibration and tests all call it. One
+compiled call
+
+1. normalises the observation windows and encodes them ONCE → condition (B, M, Dc);
+2. denoises N independent noise draws per observation: ``vmap`` over the N sample keys, ``lax.scan`` over the
+   reverse steps of a precomputed DDPM or DDIM table (``diffusion.reverse_table``);
+3. unnormalises the chunks → (B, N, M·L_c, A);
+4. computes the action entropy H = mean over frequencies, steps and action dims of 0.5·log(2πe·var + ε), with the
+   ddof=1 variance over the N samples of the *unnormalised* actions (as the reference release);
+5. selects the execution frequency from ascending thresholds (lowest entropy → highest frequency) and returns
+   sample 0's chunk at that frequency.
+
+Chunk layout (see ``config``): segments in descending-stride order, so stride ``strides[k]`` (frequency index k,
+0 = highest frequency) lives in segment ``M-1-k``.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hipolicy_jax import diffusion
+from hipolicy_jax.config import ChunkConfig, PolicyConfig
+
+
+class SampleResult(NamedTuple):
+    chunks: jax.Array  # (B, N, M·L_c, A) unnormalised actions of all samples
+    entropy: jax.Array  # (B,) action entropy; NaN when N == 1
+    freq_index: jax.Array  # (B,) int32, index into chunk.strides (0 = highest frequency)
+    stride: jax.Array  # (B,) int32, the selected stride
+    actions: jax.Array  # (B, L_c, A) sample 0's chunk at the selected stride
+
+
+def action_entropy(chunks: jax.Array, eps: float = 1e-6) -> jax.Array:
+    """Gaussian action entropy of N samples: chunks (..., N, T, A) → (...), N ≥ 2.
+
+    H = mean over (T, A) of 0.5·log(2πe·var + eps), var the unbiased (ddof=1) variance over the N axis.
+    """
+    var = jnp.var(chunks, axis=-3, ddof=1)
+    return jnp.mean(0.5 * jnp.log(2.0 * jnp.pi * jnp.e * var + eps), axis=(-2, -1))
+
+
+def select_frequency(entropy: jax.Array, thresholds, num_freqs: int) -> jax.Array:
+    """Frequency index per entropy (int32, same shape): k with thresholds[k] ≤ H < thresholds[k+1].
+
+    ``thresholds``: M+1 ascending values (sequence or traced array). Only the M-1 inner thresholds decide;
+    entropies beyond the outer ones clamp to the first / last frequency.
+    ``thresholds=None`` (uncalibrated) or a NaN entropy selects the highest frequency (index 0).
+    """
+    if thresholds is None or num_freqs == 1:
+        return jnp.zeros(jnp.shape(entropy), jnp.int32)
+    inner = jnp.asarray(thresholds, jnp.float32)[1:num_freqs]
+    k = jnp.searchsorted(inner, entropy, side="right").astype(jnp.int32)
+    return jnp.where(jnp.isnan(entropy), 0, k)
+
+
+def segment_of(chunk: ChunkConfig, chunks: jax.Array, freq_index: jax.Array) -> jax.Array:
+    """The L_c steps of frequency ``freq_index`` from chunks (B, M·L_c, A) → (B, L_c, A)."""
+    lc, m = chunk.chunk_len, chunk.num_freqs
+    segs = chunks.reshape(chunks.shape[0], m, lc, chunks.shape[-1])
+    return jnp.take_along_axis(segs, (m - 1 - freq_index)[:, None, None, None], axis=1)[:, 0]
+
+
+def denoise_chain(net, params, cond: jax.Array, key: jax.Array, *, cfg: PolicyConfig, action_dim: int,
+                  table: diffusion.ReverseTable) -> jax.Array:
+    """One reverse chain for a batch: cond (B, M, Dc) → normalised chunks (B, M·L_c, A)."""
+    batch = cond.shape[0]
+    shape = (batch, cfg.chunk.horizon, action_dim)
+    key, k0 = jax.random.split(key)
+    x = jax.random.normal(k0, shape, jnp.float32)
+
+    def body(x, row_and_key):
+        row, k = row_and_key
+        t = jnp.full((batch,), row.timesteps, jnp.int32)
+        out = net.apply(params, x, t, cond, method=net.denoise)
+        z = jax.random.normal(k, shape, jnp.float32)
+        return diffusion.reverse_step(cfg.diffusion, row, x, out, z), None
+
+    step_keys = jax.random.split(key, table.timesteps.shape[0])
+    x, _ = jax.lax.scan(body, x, (table, step_keys))
+    return x
+
+
+def sample(params, normalizer, obs: dict[str, jax.Array], key: jax.Array, *, net, cfg: PolicyConfig,
+           action_dim: int, num_samples: int | None = None, num_steps: int | None = None,
+           sampler: str | None = None, thresholds=None) -> SampleResult:
+    """Sample N action chunks per observation and select the execution frequency, in one call.
+
+    Args:
+      params: PolicyNet variables.
+      normalizer: ``data.normalizer.Normalizer`` fitted on the training data.
+      obs: raw observation windows, each (B, M, L_h, ...) in segment order (``data.windowing``).
+      key: PRNG key; the result is a deterministic function of it.
+      net: the ``PolicyNet`` module (static).
+      num_samples / num_steps / sampler: override ``cfg.sampling`` / ``cfg.diffusion`` (static).
+      thresholds: (M+1,) entropy thresholds overriding ``cfg.sampling.thresholds``; traced, so sweeping them
+        does not recompile.
+    """
+    n = num_samples or cfg.sampling.num_samples
+    thresholds = thresholds if thresholds is not None else cfg.sampling.thresholds
+    table = diffusion.reverse_table(cfg.diffusion, num_steps, sampler)
+    cond = net.apply(params, normalizer.normalize_obs(obs), method=net.encode)
+    chain = functools.partial(denoise_chain, net, params, cond, cfg=cfg, action_dim=action_dim, table=table)
+    chunks = jax.vmap(chain)(jax.random.split(key, n))  # (N, B, T, A)
+    chunks = normalizer.unnormalize("action", jnp.swapaxes(chunks, 0, 1))  # (B, N, T, A)
+    if n >= 2:
+        entropy = action_entropy(chunks, cfg.sampling.entropy_eps)
+    else:
+        entropy = jnp.full(chunks.shape[:1], jnp.nan, jnp.float32)
+    k = select_frequency(entropy, thresholds, cfg.chunk.num_freqs)
+    strides = jnp.asarray(np.asarray(cfg.chunk.strides), jnp.int32)
+    return SampleResult(chunks, entropy, k, strides[k], segment_of(cfg.chunk, chunks[:, 0], k))
+
+
+sample_jit = jax.jit(sample, static_argnames=("net", "cfg", "action_dim", "num_samples", "num_steps", "sampler"))

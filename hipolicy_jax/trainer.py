@@ -1,0 +1,154 @@
+"""The training loop: batches → jitted train step → metrics, checkpoints and periodic evaluation.
+
+Resume is exact: step k's batch is ``dataset.batch_indices(data_key, k)`` and its noise ``fold_in(noise_key, k)``,
+both functions of the seed and the step only, and the restored ``TrainState`` carries the step. Re-running the same
+command after a stop continues the same loss sequence.
+
+Outputs under ``out_dir``: ``checkpoints/<step>/``, ``metrics.jsonl`` (one JSON object per log / eval event) and
+TensorBoard event files under ``tb/``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from typing import Callable, NamedTuple
+
+import jax
+import numpy as np
+from tqdm.auto import tqdm
+
+from hipolicy_jax.checkpoint import Checkpointer, config_to_dict
+from hipolicy_jax.config import PolicyConfig, TrainConfig
+from hipolicy_jax.models.policy_net import PolicyNet, init_policy_params, param_count
+from hipolicy_jax.training import TrainState, init_train_state, make_optimizer, make_train_step
+
+
+class FitResult(NamedTuple):
+    state: TrainState
+    net: PolicyNet
+    losses: list[float]  # per step, for the steps this call ran
+    start_step: int  # the step this call resumed from (0 for a fresh run)
+    meta: dict
+
+
+def run_keys(seed: int) -> dict[str, jax.Array]:
+    """Independent key streams for parameter init, data order and diffusion noise."""
+    base = jax.random.key(seed)
+    return {name: jax.random.fold_in(base, i) for i, name in enumerate(("init", "data", "noise", "eval"))}
+
+
+def checkpoint_meta(cfg: PolicyConfig, train_cfg: TrainConfig, example_batch: dict, extra: dict | None = None) -> dict:
+    """JSON facts needed to rebuild the network: configs, action dim, per-frame obs shapes."""
+    shapes = {k: list(v.shape[3:]) for k, v in example_batch["obs"].items()}
+    meta = {"policy": config_to_dict(cfg), "train": config_to_dict(train_cfg),
+            "action_dim": int(example_batch["action"].shape[-1]), "obs_shapes": shapes}
+    meta.update(extra or {})
+    return meta
+
+
+def _same_config(a: dict, b: dict, keys=("policy", "action_dim", "obs_shapes")) -> bool:
+    return all(json.dumps(a.get(k), sort_keys=True) == json.dumps(b.get(k), sort_keys=True) for k in keys)
+
+
+class _Logger:
+    def __init__(self, out_dir: str, tensorboard: bool):
+        self._jsonl = open(os.path.join(out_dir, "metrics.jsonl"), "a")
+        self._tb = None
+        if tensorboard:
+            from tensorboardX import SummaryWriter
+
+            self._tb = SummaryWriter(os.path.join(out_dir, "tb"))
+
+    def log(self, step: int, kind: str, values: dict):
+        self._jsonl.write(json.dumps({"step": step, "kind": kind, **values}) + "\n")
+        self._jsonl.flush()
+        if self._tb is not None:
+            for k, v in values.items():
+                if isinstance(v, (int, float)) and np.isfinite(v):
+                    self._tb.add_scalar(f"{kind}/{k}", v, step)
+
+    def close(self):
+        self._jsonl.close()
+        if self._tb is not None:
+            self._tb.close()
+
+
+def fit(cfg: PolicyConfig, train_cfg: TrainConfig, dataset, out_dir: str, *,
+        eval_fn: Callable[[TrainState, int], dict] | None = None, eval_every: int | None = None,
+        meta_extra: dict | None = None, progress: bool = True, tensorboard: bool = True,
+        stop_at: int | None = None) -> FitResult:
+    """Train (or resume) a policy on ``dataset`` (a ``data.dataset.SequenceDataset``).
+
+    ``eval_fn(state, step) -> dict`` runs every ``eval_every`` steps and at the end; its scalars are logged.
+    ``stop_at`` stops early after that step (used to simulate an interrupted run) without a final evaluation.
+    """
+    os.makedirs(out_dir, exist_ok=True)
+    keys = run_keys(train_cfg.seed)
+    if len(dataset) < train_cfg.batch_size:
+        raise ValueError(f"train.batch_size: {train_cfg.batch_size} exceeds the dataset's {len(dataset)} samples")
+    example = dataset.get_batch(np.arange(min(2, len(dataset))))
+    action_dim = int(example["action"].shape[-1])
+    net = PolicyNet(cfg, action_dim)
+    tx = make_optimizer(train_cfg)
+    meta = checkpoint_meta(cfg, train_cfg, example, meta_extra)
+
+    ckpt = Checkpointer(os.path.join(out_dir, "checkpoints"), train_cfg.ckpt_every, train_cfg.ckpt_keep)
+    latest = ckpt.latest_step()
+    if latest is None:
+        state = init_train_state(init_policy_params(cfg, action_dim, example["obs"], keys["init"]), tx)
+    else:
+        old = ckpt.restore_meta(latest)
+        if not _same_config(old, meta):
+            raise ValueError(f"{out_dir} holds checkpoints of a different policy config or data shapes; "
+                             f"pass a new output directory or delete the old one")
+        abstract = jax.eval_shape(lambda: init_train_state(
+            init_policy_params(cfg, action_dim, example["obs"], keys["init"]), tx))
+        state, _, _ = ckpt.restore(latest, abstract)
+    start = int(state.step)
+    meta["param_count"] = param_count(state.params)
+    train_step = make_train_step(net, cfg, train_cfg, tx)
+    logger = _Logger(out_dir, tensorboard)
+    end = train_cfg.num_steps if stop_at is None else min(stop_at, train_cfg.num_steps)
+    losses: list[float] = []
+    pending: list[dict] = []
+    bar = tqdm(total=train_cfg.num_steps, initial=start, disable=not progress, desc="train", unit="step",
+               dynamic_ncols=True)
+    t_last, n_last = time.perf_counter(), start
+    try:
+        for step in range(start, end):
+            batch = dataset.get_batch(dataset.batch_indices(keys["data"], step, train_cfg.batch_size))
+            state, metrics = train_step(state, batch, keys["noise"])
+            pending.append(metrics)
+            done = step + 1
+            if done % train_cfg.log_every == 0 or done == end:
+                host = jax.device_get(pending)
+                pending = []
+                bad = [m for m in host if not m["finite"]]
+                if bad:
+                    raise FloatingPointError(
+                        f"non-finite loss or gradient at step ~{done} (loss={bad[0]['loss']}, grad_norm="
+                        f"{bad[0]['grad_norm']}); the update was skipped and the last checkpoint is intact. "
+                        f"Try a lower train.lr, train.grad_clip, or check the data for outliers")
+                losses.extend(float(m["loss"]) for m in host)
+                now = time.perf_counter()
+                sps = (done - n_last) / max(now - t_last, 1e-9)
+                t_last, n_last = now, done
+                row = {"loss": float(np.mean([m["loss"] for m in host])),
+                       "grad_norm": float(np.mean([m["grad_norm"] for m in host])),
+                       "lr": float(host[-1]["lr"]), "steps_per_s": sps}
+                logger.log(done, "train", row)
+                bar.set_postfix(loss=f"{row['loss']:.4f}", lr=f"{row['lr']:.1e}", sps=f"{sps:.1f}")
+                bar.update(done - bar.n)
+            ckpt.save(done, state, dataset.normalizer, meta, force=(done == train_cfg.num_steps))
+            if eval_fn is not None and eval_every and done % eval_every == 0 and done < train_cfg.num_steps:
+                logger.log(done, "eval", eval_fn(state, done))
+        if eval_fn is not None and end == train_cfg.num_steps:
+            logger.log(end, "eval", eval_fn(state, end))
+    finally:
+        bar.close()
+        ckpt.wait()
+        ckpt.close()
+        logger.close()
+    return FitResult(state, net, losses, start, meta)

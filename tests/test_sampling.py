@@ -1,0 +1,148 @@
+"""The one-call sampler: entropy closed forms, threshold table, segment selection, determinism, no retrace.
+
+A fake network with the ``PolicyNet`` protocol (``apply(params, ..., method=encode|denoise)``) keeps these tests
+exact; tests with the real network live in test_policy.py.
+"""
+
+import math
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hipolicy_jax.config import ChunkConfig, DiffusionConfig, PolicyConfig, SamplingConfig
+from hipolicy_jax.sampling import action_entropy, sample_jit, segment_of, select_frequency
+
+
+def test_entropy_two_samples_exact():
+    a = jnp.array([[[0.0, 1.0]], [[0.2, 0.4]]])  # (N=2, T=1, A=2)
+    var = np.array([0.02, 0.18])  # (a-b)²/2, ddof=1
+    expected = np.mean(0.5 * np.log(2 * np.pi * np.e * var + 1e-6))
+    assert float(action_entropy(a)) == pytest.approx(expected, rel=1e-5)
+
+
+def test_entropy_of_gaussian_samples_matches_closed_form():
+    sigma = jnp.array([0.05, 0.3])
+    x = jax.random.normal(jax.random.key(0), (2, 4000, 6, 3)) * sigma[:, None, None, None]
+    h = np.asarray(action_entropy(x))
+    np.testing.assert_allclose(h, 0.5 * np.log(2 * np.pi * np.e * np.asarray(sigma) ** 2), atol=0.02)
+
+
+RELEASE = (-math.inf, -6.0, -5.5, math.inf)
+
+
+@pytest.mark.parametrize("h,expected", [(-7.0, 0), (-6.0001, 0), (-6.0, 1), (-5.75, 1), (-5.5, 2), (3.0, 2),
+                                        (float("nan"), 0)])
+def test_release_threshold_table(h, expected):
+    """Release: H < -6 → short (stride 1), H < -5.5 → mid, else long; lowest entropy → highest frequency."""
+    assert int(select_frequency(jnp.float32(h), RELEASE, 3)) == expected
+
+
+def test_finite_outer_thresholds_clamp_and_none_means_highest_frequency():
+    th = (-8.0, -6.0, -5.5, -5.0)
+    got = select_frequency(jnp.array([-9.0, -7.0, -5.7, -5.2, -4.0]), th, 3)
+    np.testing.assert_array_equal(np.asarray(got), [0, 0, 1, 2, 2])
+    np.testing.assert_array_equal(np.asarray(select_frequency(jnp.array([-9.0, 9.0]), None, 3)), [0, 0])
+    np.testing.assert_array_equal(np.asarray(select_frequency(jnp.array([-9.0, 9.0]), (0.0, 1.0), 1)), [0, 0])
+
+
+def test_segment_of_picks_the_selected_stride():
+    chunk = ChunkConfig(strides=(1, 2, 3), chunk_len=4)
+    # segments in descending-stride order: stride 3 | stride 2 | stride 1, filled with their stride
+    chunks = jnp.concatenate([jnp.full((2, 4, 1), s, jnp.float32) for s in chunk.segment_strides], axis=1)
+    out = segment_of(chunk, chunks, jnp.array([0, 2]))
+    assert out.shape == (2, 4, 1)
+    np.testing.assert_array_equal(np.asarray(out[:, 0, 0]), [1.0, 3.0])
+
+
+# --------------------------------------------------------------------------------------------- fake network
+class FakeNet:
+    """encode: mean over the obs window; denoise: x0 = tanh(w·cond mean) + v·x_t (sample-prediction)."""
+
+    def __init__(self):
+        self.traces = 0
+
+    def encode(self, obs, train=False):  # protocol marker only
+        raise AssertionError
+
+    def denoise(self, x, t, cond):  # protocol marker only
+        raise AssertionError
+
+    def apply(self, params, *args, method, **kw):
+        self.traces += 1
+        if method == self.encode:
+            return args[0]["state"].mean(axis=2)  # (B, M, D)
+        x, t, cond = args
+        target = jnp.tanh(params["w"] * cond.mean(axis=(1, 2)))[:, None, None]
+        return target + params["v"] * x
+
+
+@flax.struct.dataclass
+class AffineNormalizer:
+    scale: jax.Array
+
+    def normalize_obs(self, obs):
+        return obs
+
+    def unnormalize(self, key, x):
+        assert key == "action"
+        return x * self.scale
+
+
+def _cfg(n, thresholds=None, strides=(1, 2, 3), steps=10):
+    return PolicyConfig(chunk=ChunkConfig(strides=strides, chunk_len=4),
+                        diffusion=DiffusionConfig(prediction_type="sample", num_train_steps=steps,
+                                                  num_inference_steps=steps),
+                        sampling=SamplingConfig(num_samples=n, thresholds=thresholds))
+
+
+def _obs(b=2, m=3):
+    return {"state": jnp.arange(b * m * 3 * 5, dtype=jnp.float32).reshape(b, m, 3, 5) / 100.0}
+
+
+def test_sampler_shapes_and_collapsed_samples_give_closed_form_entropy():
+    net, cfg = FakeNet(), _cfg(8, thresholds=RELEASE)
+    params = {"w": jnp.float32(1.0), "v": jnp.float32(0.0)}  # x0 independent of noise → all samples equal
+    res = sample_jit(params, AffineNormalizer(jnp.float32(2.0)), _obs(), jax.random.key(0), net=net, cfg=cfg,
+                     action_dim=2)
+    assert res.chunks.shape == (2, 8, 12, 2) and res.actions.shape == (2, 4, 2)
+    target = 2.0 * np.tanh(np.asarray(_obs()["state"]).mean(axis=(1, 2, 3)))
+    np.testing.assert_allclose(np.asarray(res.chunks[:, :, 0, 0]), np.repeat(target[:, None], 8, 1), rtol=1e-5)
+    h0 = 0.5 * math.log(1e-6)  # var = 0 → 0.5·log(2πe·0 + ε) ≈ -6.91
+    np.testing.assert_allclose(np.asarray(res.entropy), [h0, h0], rtol=1e-5)
+    np.testing.assert_array_equal(np.asarray(res.stride), [1, 1])  # -6.91 < -6 → short (stride 1)
+    res2 = sample_jit(params, AffineNormalizer(jnp.float32(2.0)), _obs(), jax.random.key(0), net=net, cfg=cfg,
+                      action_dim=2, thresholds=jnp.array([-jnp.inf, -8.0, -7.0, jnp.inf]))
+    np.testing.assert_array_equal(np.asarray(res2.stride), [3, 3])  # same entropy, lower thresholds → long
+
+
+def test_sampler_deterministic_per_key_different_across_keys_and_no_retrace():
+    net, cfg = FakeNet(), _cfg(5)
+    params = {"w": jnp.float32(0.5), "v": jnp.float32(0.3)}
+    norm = AffineNormalizer(jnp.float32(1.0))
+    a = sample_jit(params, norm, _obs(), jax.random.key(1), net=net, cfg=cfg, action_dim=2)
+    traces = net.traces
+    assert traces > 0
+    b = sample_jit(params, norm, _obs(), jax.random.key(1), net=net, cfg=cfg, action_dim=2)
+    c = sample_jit(params, norm, _obs(), jax.random.key(2), net=net, cfg=cfg, action_dim=2)
+    d = sample_jit({"w": jnp.float32(0.7), "v": jnp.float32(0.3)}, norm, _obs(), jax.random.key(2), net=net,
+                   cfg=cfg, action_dim=2)
+    assert net.traces == traces, "equal shapes must not retrace"
+    np.testing.assert_array_equal(np.asarray(a.chunks), np.asarray(b.chunks))
+    assert not np.allclose(np.asarray(a.chunks), np.asarray(c.chunks))
+    assert not np.allclose(np.asarray(c.chunks), np.asarray(d.chunks))
+    # samples within one call differ (independent noise per sample)
+    assert np.all(np.asarray(a.chunks).std(axis=1) > 0)
+    assert np.all(np.isfinite(np.asarray(a.entropy)))
+
+
+def test_single_sample_skips_entropy_and_runs_highest_frequency():
+    net, cfg = FakeNet(), _cfg(1, thresholds=RELEASE)
+    res = sample_jit({"w": jnp.float32(0.5), "v": jnp.float32(0.3)}, AffineNormalizer(jnp.float32(1.0)), _obs(),
+                     jax.random.key(0), net=net, cfg=cfg, action_dim=2)
+    assert res.chunks.shape == (2, 1, 12, 2)
+    assert np.all(np.isnan(np.asarray(res.entropy)))
+    np.testing.assert_array_equal(np.asarray(res.stride), [1, 1])
+    np.testing.assert_array_equal(np.asarray(res.actions), np.asarray(res.chunks[:, 0, 8:12]))
