@@ -1,0 +1,91 @@
+"""Multi-frequency observation windows and action chunks as frame indices.
+
+For a current frame t and stride s (``ChunkConfig``):
+
+    observations  o[t-(L_h-1)s], ..., o[t-s], o[t]                 (L_h frames ending at t)
+    actions       a[t+δ], a[t+δ+s], ..., a[t+δ+(L_c-1)s]           (L_c steps from t+δ)
+
+The M strides are laid out in segment order (``chunk.segment_strides``: largest stride, i.e. lowest frequency,
+first), and the action chunk concatenates the M segments along time: ``(M*L_c,)``.
+
+Training (``sample_indices``) turns a replay buffer's episode ends into global frame indices once, at dataset build
+time, padding by repeating an episode's first / last frame (Diffusion Policy's sampler convention) so that no
+window crosses an episode boundary. Evaluation (``gather_history``) reads the same windows out of the env's rolling
+base-rate history of ``chunk.obs_span`` frames, with jax arrays, under jit / vmap.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from hipolicy_jax.config import ChunkConfig
+from hipolicy_jax.data.replay_buffer import check_episode_ends
+
+
+def obs_offsets(chunk: ChunkConfig) -> np.ndarray:
+    """``(M, L_h)`` int64 frame offsets from the current frame: row m is ``-(L_h-1)s, ..., -s, 0`` for stride s."""
+    steps = np.arange(chunk.obs_horizon, dtype=np.int64) - (chunk.obs_horizon - 1)  # -(L_h-1), ..., 0
+    return np.asarray(chunk.segment_strides, dtype=np.int64)[:, None] * steps[None, :]
+
+
+def action_offsets(chunk: ChunkConfig) -> np.ndarray:
+    """``(M, L_c)`` int64 action offsets from the current frame: row m is ``δ, δ+s, ..., δ+(L_c-1)s``."""
+    steps = np.arange(chunk.chunk_len, dtype=np.int64)
+    return chunk.action_offset + np.asarray(chunk.segment_strides, dtype=np.int64)[:, None] * steps[None, :]
+
+
+def sample_indices(episode_ends: np.ndarray, chunk: ChunkConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Global frame indices of every training sample.
+
+    Args:
+      episode_ends: ``(E,)`` cumulative episode ends (ReplayBuffer layout).
+      chunk: windowing configuration.
+
+    Returns:
+      current: ``(S,)`` int64 current frames t, every frame with ``t + δ`` inside its episode, in time order.
+      obs_idx: ``(S, M, L_h)`` int64 observation frames per stride (segment order), clamped to the episode.
+      act_idx: ``(S, M*L_c)`` int64 action frames, the M segments concatenated in segment order, clamped to the
+        episode.
+    """
+    ends = check_episode_ends(episode_ends, None)
+    starts = np.concatenate([[0], ends[:-1]])
+    num_valid = np.maximum(ends - starts - chunk.action_offset, 0)  # t ∈ [start, end-1-δ]
+    episode = np.repeat(np.arange(ends.shape[0]), num_valid)
+    first_sample = np.concatenate([[0], np.cumsum(num_valid)[:-1]])
+    current = starts[episode] + np.arange(episode.shape[0], dtype=np.int64) - first_sample[episode]
+
+    lo = starts[episode][:, None, None]
+    hi = (ends[episode] - 1)[:, None, None]
+    obs_idx = np.clip(current[:, None, None] + obs_offsets(chunk)[None], lo, hi)
+    act_idx = np.clip(current[:, None, None] + action_offsets(chunk)[None], lo, hi)
+    return current, obs_idx, act_idx.reshape(current.shape[0], chunk.horizon)
+
+
+def history_window_indices(chunk: ChunkConfig) -> np.ndarray:
+    """``(M, L_h)`` positions inside a base-rate history of ``chunk.obs_span`` frames (last = current) per stride.
+
+    For strides (1, 2, 3) and L_h = 3: obs_span 7 and ``[[0, 3, 6], [2, 4, 6], [4, 5, 6]]``.
+    """
+    return obs_offsets(chunk) + (chunk.obs_span - 1)
+
+
+def gather_history(history: dict[str, jnp.ndarray], chunk: ChunkConfig) -> dict[str, jnp.ndarray]:
+    """Per-stride observation windows from a rolling history.
+
+    Args:
+      history: ``{key: (obs_span, ...)}`` base-rate frames, oldest first, the last one current; frames before the
+        episode start should repeat the first frame (as ``sample_indices`` pads).
+      chunk: windowing configuration.
+
+    Returns:
+      ``{key: (M, L_h, ...)}`` in segment order. Works on numpy or jax arrays, under jit and vmap.
+    """
+    idx = history_window_indices(chunk)
+    out = {}
+    for key, frames in history.items():
+        if frames.shape[0] != chunk.obs_span:
+            raise ValueError(f"history[{key!r}]: expected (obs_span={chunk.obs_span}, ...) frames, "
+                             f"got shape {frames.shape}")
+        out[key] = jnp.take(frames, idx, axis=0)
+    return out
