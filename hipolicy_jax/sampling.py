@@ -89,13 +89,14 @@ def denoise_chain(net, params, cond: jax.Array, key: jax.Array, *, cfg: PolicyCo
 
 def sample(params, normalizer, obs: dict[str, jax.Array], key: jax.Array, *, net, cfg: PolicyConfig,
            action_dim: int, num_samples: int | None = None, num_steps: int | None = None,
-           sampler: str | None = None, thresholds=None) -> SampleResult:
+           sampler: str | None = None, thresholds=None, obs_normalized: bool = False) -> SampleResult:
     """Sample N action chunks per observation and select the execution frequency, in one call.
 
     Args:
       params: PolicyNet variables.
       normalizer: ``data.normalizer.Normalizer`` fitted on the training data.
-      obs: raw observation windows, each (B, M, L_h, ...) in segment order (``data.windowing``).
+      obs: observation windows, each (B, M, L_h, ...) in segment order (``data.windowing``); raw unless
+        ``obs_normalized`` (static) says they come normalised, as ``SequenceDataset.get_batch`` returns them.
       key: PRNG key; the result is a deterministic function of it.
       net: the ``PolicyNet`` module (static).
       num_samples / num_steps / sampler: override ``cfg.sampling`` / ``cfg.diffusion`` (static).
@@ -105,7 +106,7 @@ def sample(params, normalizer, obs: dict[str, jax.Array], key: jax.Array, *, net
     n = num_samples or cfg.sampling.num_samples
     thresholds = thresholds if thresholds is not None else cfg.sampling.thresholds
     table = diffusion.reverse_table(cfg.diffusion, num_steps, sampler)
-    cond = net.apply(params, normalizer.normalize_obs(obs), method=net.encode)
+    cond = net.apply(params, obs if obs_normalized else normalizer.normalize_obs(obs), method=net.encode)
     chain = functools.partial(denoise_chain, net, params, cond, cfg=cfg, action_dim=action_dim, table=table)
     chunks = jax.vmap(chain)(jax.random.split(key, n))  # (N, B, T, A)
     chunks = normalizer.unnormalize("action", jnp.swapaxes(chunks, 0, 1))  # (B, N, T, A)
@@ -118,4 +119,5 @@ def sample(params, normalizer, obs: dict[str, jax.Array], key: jax.Array, *, net
     return SampleResult(chunks, entropy, k, strides[k], segment_of(cfg.chunk, chunks[:, 0], k))
 
 
-sample_jit = jax.jit(sample, static_argnames=("net", "cfg", "action_dim", "num_samples", "num_steps", "sampler"))
+sample_jit = jax.jit(sample, static_argnames=("net", "cfg", "action_dim", "num_samples", "num_steps", "sampler",
+                                              "obs_normalized"))

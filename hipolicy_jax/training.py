@@ -50,7 +50,9 @@ def ema_decay(step: jax.Array, cfg: TrainConfig) -> jax.Array:
 
 
 def init_train_state(params, tx: optax.GradientTransformation) -> TrainState:
-    return TrainState(step=jnp.zeros((), jnp.int32), params=params, ema_params=params, opt_state=tx.init(params))
+    # The EMA copy must not alias ``params``: the train step donates the whole state.
+    ema = jax.tree.map(jnp.copy, params)
+    return TrainState(step=jnp.zeros((), jnp.int32), params=params, ema_params=ema, opt_state=tx.init(params))
 
 
 def diffusion_loss(params, batch: dict, key: jax.Array, *, net, cfg: PolicyConfig) -> jax.Array:
@@ -76,7 +78,7 @@ def make_train_step(net, cfg: PolicyConfig, train_cfg: TrainConfig,
     def step(state: TrainState, batch: dict, base_key: jax.Array):
         key = jax.random.fold_in(base_key, state.step)
         loss, grads = jax.value_and_grad(diffusion_loss)(state.params, batch, key, net=net, cfg=cfg)
-        grad_norm = optax.global_norm(grads)
+        grad_norm = optax.tree.norm(grads)
         finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)

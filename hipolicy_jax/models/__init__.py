@@ -1,0 +1,36 @@
+"""Networks: observation encoders, the conditional 1D U-Net denoiser and the combined ``PolicyNet``."""
+
+from hipolicy_jax.models.encoders import (
+    ImageEncoder,
+    ObsEncoder,
+    PointCloudEncoder,
+    SpatialSoftmax,
+    StateEncoder,
+    crop_images,
+)
+from hipolicy_jax.models.policy_net import PolicyNet, init_policy_params, init_variables, param_count
+from hipolicy_jax.models.unet import (
+    ConditionalResidualBlock1D,
+    ConditionalUnet1D,
+    Conv1dBlock,
+    SegmentFusion,
+    SinusoidalPosEmb,
+)
+
+__all__ = [
+    "ConditionalResidualBlock1D",
+    "ConditionalUnet1D",
+    "Conv1dBlock",
+    "ImageEncoder",
+    "ObsEncoder",
+    "PointCloudEncoder",
+    "PolicyNet",
+    "SegmentFusion",
+    "SinusoidalPosEmb",
+    "SpatialSoftmax",
+    "StateEncoder",
+    "crop_images",
+    "init_policy_params",
+    "init_variables",
+    "param_count",
+]

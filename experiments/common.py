@@ -1,0 +1,118 @@
+"""Pieces shared by the experiment entry points: CPU defaults, demo data, datasets, evaluation, calibration.
+
+The flow every script follows: demos (collected once, cached as a zarr ReplayBuffer) → train / held-out datasets
+→ ``trainer.fit`` → thresholds calibrated on held-out demos → batched MJX rollouts of the policy.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+from typing import Literal
+
+import jax
+import numpy as np
+
+from hipolicy_jax.config import (ChunkConfig, DiffusionConfig, ModelConfig, PolicyConfig, SamplingConfig,
+                                 TrainConfig)
+from hipolicy_jax.data.dataset import SequenceDataset, split_episodes
+from hipolicy_jax.data.replay_buffer import ReplayBuffer
+from hipolicy_jax.policy import calibrate_thresholds, make_policy_fn, measure_entropies, policy_obs_keys
+
+# CPU-sized defaults: the paper's windowing (strides 1/2/3, L_h 3, L_c 8) with a small U-Net.
+CPU_POLICY = PolicyConfig(chunk=ChunkConfig(), model=ModelConfig(size="cpu"), diffusion=DiffusionConfig(),
+                          sampling=SamplingConfig(num_samples=16))
+CPU_TRAIN = TrainConfig(batch_size=64, num_steps=3000, lr=3e-4, warmup_steps=200, log_every=50, ckpt_every=500)
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalOptions:
+    """Batched-rollout evaluation. On a CPU use few samples and DDIM steps; the paper used N=100, 100 DDPM steps."""
+
+    episodes: int = 20
+    num_samples: int = 16  # N for the entropy estimate
+    sampler: Literal["ddpm", "ddim"] = "ddim"
+    num_steps: int = 10
+    every: int = 1000  # training steps between evaluations (0: only at the end)
+    entropy_guided: bool = True  # False: always execute the highest frequency
+    percentiles: tuple[float, ...] = (10.0, 70.0)  # threshold calibration on held-out demos
+    calib_windows: int = 128
+
+
+def default_data_path(task: str, obs_keys: tuple[str, ...], episodes: int) -> str:
+    return os.path.join("data", f"{task}_{'-'.join(obs_keys)}_{episodes}.zarr")
+
+
+def load_or_collect(task: str, obs_keys: tuple[str, ...], episodes: int, path: str, seed: int = 0,
+                    progress: bool = True) -> ReplayBuffer:
+    """Reuse the dataset at ``path`` or collect ``episodes`` expert demos of ``task`` and save them there."""
+    if os.path.exists(path):
+        buffer = ReplayBuffer.load(path)
+        missing = [k for k in (*obs_keys, "action") if k not in buffer.data]
+        if missing:
+            raise ValueError(f"{path}: lacks keys {missing} (has {sorted(buffer.data)}); collect with those obs")
+        return buffer
+    from hipolicy_jax.envs.demos import collect_demos
+
+    if progress:
+        print(f"collecting {episodes} expert demos of {task} → {path}")
+    episodes_data = collect_demos(task, episodes, jax.random.key(seed), obs_keys=obs_keys)
+    buffer = ReplayBuffer.from_episodes(episodes_data)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    buffer.save(path)
+    return buffer
+
+
+def build_datasets(buffer: ReplayBuffer, cfg: PolicyConfig, val_ratio: float, seed: int):
+    """Train / held-out datasets split by episode; the held-out one reuses the training normaliser."""
+    keys = policy_obs_keys(cfg.encoder)
+    train_mask, val_mask = split_episodes(buffer.num_episodes, val_ratio, seed)
+    train = SequenceDataset(buffer, cfg.chunk, obs_keys=keys, episode_mask=train_mask)
+    val = SequenceDataset(buffer, cfg.chunk, obs_keys=keys, episode_mask=val_mask, normalizer=train.normalizer)
+    return train, val
+
+
+def calibrate(net, params, normalizer, cfg: PolicyConfig, action_dim: int, val_ds, opts: EvalOptions,
+              key) -> tuple[tuple[float, ...], np.ndarray]:
+    """Thresholds at ``opts.percentiles`` of the held-out demos' action entropies → (thresholds, entropies)."""
+    m = cfg.chunk.num_freqs
+    if m == 1:
+        return (-math.inf, math.inf), np.zeros(0)
+    h = measure_entropies(net, params, normalizer, cfg, action_dim, val_ds, key, max_windows=opts.calib_windows,
+                          num_samples=opts.num_samples, num_steps=opts.num_steps, sampler=opts.sampler)
+    pct = opts.percentiles if len(opts.percentiles) == m - 1 else None
+    return calibrate_thresholds(h, m, pct), h
+
+
+def evaluate_policy(net, params, normalizer, cfg: PolicyConfig, action_dim: int, task: str, opts: EvalOptions,
+                    key, thresholds=None):
+    """Roll the policy out on ``opts.episodes`` episodes in one compiled call → ``envs.rollout.EvalResult``."""
+    from hipolicy_jax.envs.rollout import evaluate
+
+    th = thresholds if (opts.entropy_guided and thresholds is not None) else None
+    policy_fn = make_policy_fn(net, params, normalizer, cfg, action_dim, num_samples=opts.num_samples,
+                               num_steps=opts.num_steps, sampler=opts.sampler,
+                               thresholds=None if th is None else np.asarray(th, np.float32))
+    return evaluate(policy_fn, task, opts.episodes, key, history_len=cfg.chunk.obs_span,
+                    chunk_len=cfg.chunk.chunk_len)
+
+
+def eval_summary(result) -> dict:
+    """JSON-able scalars of an ``EvalResult``."""
+    valid = np.asarray(result.valid)
+    strides = np.asarray(result.stride)[valid]
+    out = {"success_rate": float(result.success_rate), "mean_steps_success": float(result.mean_steps_success),
+           "mean_steps": float(np.mean(np.asarray(result.steps)))}
+    for s in np.unique(strides):
+        out[f"stride{int(s)}_frac"] = float(np.mean(strides == s))
+    ent = np.asarray(result.entropy)[valid]
+    if ent.size and np.isfinite(ent).any():
+        out["mean_entropy"] = float(np.nanmean(ent))
+    return out
+
+
+def write_json(path: str, obj) -> None:
+    with open(path, "w") as f:
+        json.dump(obj, f, indent=2, default=float)

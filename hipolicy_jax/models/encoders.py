@@ -1,0 +1,243 @@
+"""Observation encoders: proprioceptive state MLP, ResNet-18-style image encoder, DP3 point-cloud encoder.
+
+``ObsEncoder`` turns a hierarchical observation window into HiPolicy's per-frequency condition. Its input arrays
+carry leading dims ``(B, M, L_h, ...)`` (batch, frequency in segment order, history frame); every frame of every
+frequency goes through the *same* encoder, and the ``L_h`` frame features of one frequency are flattened into that
+frequency's condition, exactly as Diffusion Policy flattens its observation features over time into one global
+condition. The result is ``(B, M, L_h * F)``.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import jax
+import jax.numpy as jnp
+import flax.linen as nn
+
+from hipolicy_jax.config import EncoderConfig
+
+Activation = Literal["mish", "relu"]
+_ACTIVATIONS = {"mish": jax.nn.mish, "relu": jax.nn.relu}
+
+
+def _activation(name: str):
+    if name not in _ACTIVATIONS:
+        raise ValueError(f"activation: must be one of {sorted(_ACTIVATIONS)}, got {name!r}")
+    return _ACTIVATIONS[name]
+
+
+def gn_groups(channels: int) -> int:
+    """GroupNorm group count for a ResNet stage, following robomimic / Diffusion Policy (``channels // 16``).
+
+    Falls back to the largest divisor of ``channels`` not above ``channels // 16`` (at least 1), so that narrow
+    CPU-sized trunks still normalise cleanly.
+    """
+    target = max(1, channels // 16)
+    return max(g for g in range(1, target + 1) if channels % g == 0)
+
+
+class StateEncoder(nn.Module):
+    """Per-frame MLP for proprioceptive state: ``(..., D) -> (..., out_dim)``.
+
+    ``Dense(h) [-> LayerNorm] -> act`` for each hidden size, then a final ``Dense(out_dim)`` with no activation
+    (DP3's state MLP with ``hidden=(64,)``, ``out_dim=64``, ``activation='relu'``).
+    """
+
+    hidden: tuple[int, ...] = (256, 256)
+    out_dim: int = 64
+    activation: Activation = "mish"
+    layer_norm: bool = False
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        act = _activation(self.activation)
+        for i, h in enumerate(self.hidden):
+            x = nn.Dense(h, name=f"dense_{i}")(x)
+            if self.layer_norm:
+                x = nn.LayerNorm(name=f"norm_{i}")(x)
+            x = act(x)
+        return nn.Dense(self.out_dim, name="out")(x)
+
+
+def crop_images(images: jax.Array, crop_size: int, key: jax.Array | None) -> jax.Array:
+    """Crop ``(N, H, W, C)`` images to ``(N, crop, crop, C)``.
+
+    With a key, every image gets its own uniformly random offset (Diffusion Policy / robomimic ``CropRandomizer`` in
+    training); with ``key=None`` every image is centre-cropped (evaluation), deterministically.
+    """
+    n, h, w, c = images.shape
+    if crop_size == h and crop_size == w:
+        return images
+    if key is None:
+        top = jnp.full((n,), (h - crop_size) // 2, jnp.int32)
+        left = jnp.full((n,), (w - crop_size) // 2, jnp.int32)
+    else:
+        k_top, k_left = jax.random.split(key)
+        top = jax.random.randint(k_top, (n,), 0, h - crop_size + 1)
+        left = jax.random.randint(k_left, (n,), 0, w - crop_size + 1)
+
+    def one(img, t, l):
+        return jax.lax.dynamic_slice(img, (t, l, 0), (crop_size, crop_size, c))
+
+    return jax.vmap(one)(images, top, left)
+
+
+class SpatialSoftmax(nn.Module):
+    """robomimic's spatial soft-argmax: ``(N, H, W, C) -> (N, 2 * num_keypoints)``.
+
+    A 1x1 conv maps the feature map to ``num_keypoints`` heat maps; a softmax over the ``H*W`` positions (temperature
+    1) gives each keypoint's expected (x, y) position in [-1, 1].
+    """
+
+    num_keypoints: int = 32
+
+    @nn.compact
+    def __call__(self, feat: jax.Array) -> jax.Array:
+        n, h, w, _ = feat.shape
+        heat = nn.Conv(self.num_keypoints, (1, 1), name="keypoints")(feat)  # (N, H, W, K)
+        heat = heat.reshape(n, h * w, self.num_keypoints)
+        attn = jax.nn.softmax(heat, axis=1)
+        pos_y, pos_x = jnp.meshgrid(jnp.linspace(-1.0, 1.0, h), jnp.linspace(-1.0, 1.0, w), indexing="ij")
+        ex = jnp.einsum("npk,p->nk", attn, pos_x.reshape(-1))
+        ey = jnp.einsum("npk,p->nk", attn, pos_y.reshape(-1))
+        return jnp.stack([ex, ey], axis=-1).reshape(n, 2 * self.num_keypoints)
+
+
+class BasicBlock(nn.Module):
+    """ResNet BasicBlock with GroupNorm: two 3x3 convs, projection shortcut when the shape changes.
+
+    ``(N, H, W, C_in) -> (N, H/stride, W/stride, channels)``.
+    """
+
+    channels: int
+    stride: int = 1
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        groups = gn_groups(self.channels)
+        y = nn.Conv(self.channels, (3, 3), strides=self.stride, padding=1, use_bias=False, name="conv1")(x)
+        y = nn.relu(nn.GroupNorm(num_groups=groups, epsilon=1e-5, name="norm1")(y))
+        y = nn.Conv(self.channels, (3, 3), padding=1, use_bias=False, name="conv2")(y)
+        y = nn.GroupNorm(num_groups=groups, epsilon=1e-5, name="norm2")(y)
+        if self.stride != 1 or x.shape[-1] != self.channels:
+            x = nn.Conv(self.channels, (1, 1), strides=self.stride, use_bias=False, name="shortcut")(x)
+            x = nn.GroupNorm(num_groups=groups, epsilon=1e-5, name="shortcut_norm")(x)
+        return nn.relu(y + x)
+
+
+class ImageEncoder(nn.Module):
+    """robomimic ``VisualCore`` as used by Diffusion Policy: ResNet-18 trunk with GroupNorm, spatial softmax, Linear.
+
+    Input ``(..., H, W, 3)`` float images in [-1, 1] (NHWC); output ``(..., out_dim)``. The trunk is a 7x7/2 stem
+    conv + GroupNorm + ReLU + 3x3/2 max-pool, then one stage of two BasicBlocks per entry of ``channels`` (stride 1
+    for the first stage, 2 after), as ResNet-18 with ``channels=(64, 128, 256, 512)``. In training (``train=True``)
+    every image is randomly cropped to ``crop_size`` with its own offset, drawn from the ``"crop"`` rng stream; at
+    evaluation every image is centre-cropped.
+    """
+
+    channels: tuple[int, ...] = (64, 128, 256, 512)
+    num_keypoints: int = 32
+    out_dim: int = 64
+    crop_size: int = 76
+
+    @nn.compact
+    def __call__(self, images: jax.Array, train: bool = False) -> jax.Array:
+        lead = images.shape[:-3]
+        x = images.reshape((-1,) + images.shape[-3:])  # (N, H, W, 3)
+        x = crop_images(x, self.crop_size, self.make_rng("crop") if train else None)
+        c0 = self.channels[0]
+        x = nn.Conv(c0, (7, 7), strides=2, padding=3, use_bias=False, name="stem_conv")(x)
+        x = nn.relu(nn.GroupNorm(num_groups=gn_groups(c0), epsilon=1e-5, name="stem_norm")(x))
+        x = nn.max_pool(x, (3, 3), strides=(2, 2), padding=((1, 1), (1, 1)))
+        for s, ch in enumerate(self.channels):
+            for b in range(2):
+                stride = 2 if (s > 0 and b == 0) else 1
+                x = BasicBlock(ch, stride, name=f"stage{s}_block{b}")(x)
+        x = SpatialSoftmax(self.num_keypoints, name="spatial_softmax")(x)
+        x = nn.Dense(self.out_dim, name="out")(x)
+        return x.reshape(lead + (self.out_dim,))
+
+
+class PointCloudEncoder(nn.Module):
+    """DP3's PointNet-style encoder: ``(..., P, C) -> (..., out_dim)``.
+
+    Per point ``Dense(64) -> LayerNorm -> ReLU -> Dense(128) -> LayerNorm -> ReLU -> Dense(256) -> LayerNorm -> ReLU``,
+    max-pool over the ``P`` points, then ``Dense(out_dim) -> LayerNorm``.
+    """
+
+    out_dim: int = 64
+    widths: tuple[int, ...] = (64, 128, 256)
+
+    @nn.compact
+    def __call__(self, points: jax.Array) -> jax.Array:
+        x = points
+        for i, w in enumerate(self.widths):
+            x = nn.Dense(w, name=f"dense_{i}")(x)
+            x = nn.relu(nn.LayerNorm(name=f"norm_{i}")(x))
+        x = jnp.max(x, axis=-2)
+        x = nn.Dense(self.out_dim, name="out")(x)
+        return nn.LayerNorm(name="out_norm")(x)
+
+
+class ObsEncoder(nn.Module):
+    """Encode a hierarchical observation window into the per-frequency condition ``(B, M, L_h * F)``.
+
+    ``obs`` is a dict of arrays with leading dims ``(B, M, L_h)``:
+
+    * ``state``: ``(B, M, L_h, D)``, always;
+    * ``image``: ``(B, M, L_h, image_size, image_size, 3)`` in [-1, 1] when ``cfg.obs_type == "image"``;
+    * ``point_cloud``: ``(B, M, L_h, P, point_dims)`` when ``cfg.obs_type == "pointcloud"``.
+
+    Each frame's feature is the state-MLP feature (``state_out``) concatenated with the image (``image_out``) or
+    point-cloud (``point_out``) feature, all produced by one shared set of weights for every frequency and frame;
+    ``F`` is the sum. Extra keys are ignored. A missing key, a wrong rank, a wrong trailing size or leading dims that
+    disagree with ``state`` raise ``ValueError`` naming the key and the expected shape.
+    """
+
+    cfg: EncoderConfig
+
+    @property
+    def frame_dim(self) -> int:
+        """F, the feature size of one frame."""
+        extra = {"state": 0, "image": self.cfg.image_out, "pointcloud": self.cfg.point_out}[self.cfg.obs_type]
+        return self.cfg.state_out + extra
+
+    def _check(self, obs) -> tuple[int, int, int]:
+        cfg = self.cfg
+        specs = {"state": ("(B, M, L_h, D)", 4, None)}
+        if cfg.obs_type == "image":
+            specs["image"] = (f"(B, M, L_h, {cfg.image_size}, {cfg.image_size}, 3)", 6,
+                              (cfg.image_size, cfg.image_size, 3))
+        elif cfg.obs_type == "pointcloud":
+            specs["point_cloud"] = (f"(B, M, L_h, P, {cfg.point_dims})", 5, (None, cfg.point_dims))
+        lead = None
+        for key, (expected, rank, tail) in specs.items():
+            if key not in obs:
+                raise ValueError(f"obs[{key!r}]: missing; obs_type={cfg.obs_type!r} expects shape {expected}, "
+                                 f"got keys {sorted(obs)}")
+            shape = tuple(jnp.shape(obs[key]))
+            if len(shape) != rank:
+                raise ValueError(f"obs[{key!r}]: expected shape {expected} (rank {rank}), got {shape}")
+            if tail is not None and any(t is not None and t != s for t, s in zip(tail, shape[-len(tail):])):
+                raise ValueError(f"obs[{key!r}]: expected shape {expected}, got {shape}")
+            if lead is None:
+                lead = shape[:3]
+            elif shape[:3] != lead:
+                raise ValueError(f"obs[{key!r}]: expected shape {expected} with (B, M, L_h) = {lead} as in "
+                                 f"obs['state'], got {shape}")
+        return lead
+
+    @nn.compact
+    def __call__(self, obs, train: bool = False) -> jax.Array:
+        b, m, lh = self._check(obs)
+        cfg = self.cfg
+        feats = [StateEncoder(cfg.state_hidden, cfg.state_out, name="state")(obs["state"])]
+        if cfg.obs_type == "image":
+            feats.append(ImageEncoder(cfg.image_channels, cfg.num_keypoints, cfg.image_out, cfg.crop_size,
+                                      name="image")(obs["image"], train=train))
+        elif cfg.obs_type == "pointcloud":
+            feats.append(PointCloudEncoder(cfg.point_out, name="point_cloud")(obs["point_cloud"]))
+        frame = jnp.concatenate(feats, axis=-1)  # (B, M, L_h, F)
+        return frame.reshape(b, m, lh * frame.shape[-1])
+

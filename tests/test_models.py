@@ -1,0 +1,422 @@
+"""Tests for the encoders, the HiPolicy U-Net (hierarchical FiLM, global fusion) and PolicyNet."""
+
+from __future__ import annotations
+
+import functools
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hipolicy_jax.config import PolicyConfig, replace
+from hipolicy_jax.models import (
+    ConditionalUnet1D,
+    ImageEncoder,
+    ObsEncoder,
+    PolicyNet,
+    SegmentFusion,
+    crop_images,
+    init_policy_params,
+    init_variables,
+    param_count,
+)
+from hipolicy_jax.models.unet import apply_film
+
+A = 4  # action dim
+D = 10  # state dim
+B = 2
+LC = 8
+
+
+def tiny_cfg(obs_type="state", strides=(1, 2, 3), **changes) -> PolicyConfig:
+    base = {
+        "chunk.strides": strides,
+        "chunk.chunk_len": LC,
+        "model.size": "tiny",
+        "encoder.obs_type": obs_type,
+        "encoder.state_hidden": (16,),
+        "encoder.state_out": 8,
+        "encoder.image_size": 32,
+        "encoder.crop_size": 28,
+        "encoder.image_channels": (8, 16),
+        "encoder.num_keypoints": 4,
+        "encoder.image_out": 8,
+        "encoder.num_points": 64,
+        "encoder.point_out": 8,
+    }
+    base.update(changes)
+    return replace(PolicyConfig(), **base)
+
+
+def make_obs(cfg: PolicyConfig, b=B, key=jax.random.key(0)):
+    m, lh = cfg.chunk.num_freqs, cfg.chunk.obs_horizon
+    k1, k2 = jax.random.split(key)
+    obs = {"state": jax.random.normal(k1, (b, m, lh, D))}
+    e = cfg.encoder
+    if e.obs_type == "image":
+        obs["image"] = jax.random.uniform(k2, (b, m, lh, e.image_size, e.image_size, 3), minval=-1.0, maxval=1.0)
+    elif e.obs_type == "pointcloud":
+        obs["point_cloud"] = jax.random.normal(k2, (b, m, lh, e.num_points, e.point_dims))
+    return obs
+
+
+def unet_for(cfg: PolicyConfig, **changes) -> ConditionalUnet1D:
+    mc, ch = cfg.model, cfg.chunk
+    kw = dict(down_dims=mc.unet_dims, kernel_size=mc.unet_kernel, n_groups=mc.n_groups,
+              step_embed_dim=mc.unet_step_embed, num_freqs=ch.num_freqs, chunk_len=ch.chunk_len,
+              condition=mc.condition, fusion=mc.fusion, fusion_heads=mc.fusion_heads)
+    kw.update(changes)
+    return ConditionalUnet1D(**kw)
+
+
+def unet_inputs(m, b=B, dc=6, key=jax.random.key(1)):
+    kx, kc = jax.random.split(key)
+    x = jax.random.normal(kx, (b, m * LC, A))
+    t = jnp.arange(b) * 7 + 3
+    cond = jax.random.normal(kc, (b, m, dc))
+    return x, t, cond
+
+
+def paths(tree) -> set[str]:
+    return {"/".join(str(getattr(k, "key", k)) for k in p) for p, _ in jax.tree_util.tree_leaves_with_path(tree)}
+
+
+def shapes(tree):
+    return jax.tree_util.tree_map(jnp.shape, tree)
+
+
+@functools.partial(jax.jit, static_argnames=("net", "method"),
+                   compiler_options={"xla_backend_optimization_level": 0})
+def run(net: nn.Module, variables, *args, method: str = "__call__"):
+    """Jitted ``net.apply``, compiled once per (module, method, shapes) without backend optimisation (fast to
+    compile; these tiny models run in microseconds either way)."""
+    return net.apply(variables, *args, method=method)
+
+
+def quick_init(module: nn.Module, *args, seed: int = 0, **kwargs):
+    """Variables with ``module.init``'s tree and shapes, filled from NumPy (fan-in scaled kernels, unit-ish norm
+    scales, small biases). XLA compiles of random initialisers dominate these tests' run time on a CPU, and the
+    behaviours tested here do not depend on the initialiser; ``init_policy_params`` itself is tested separately."""
+    rng = np.random.default_rng(seed)
+
+    def fill(path, leaf):
+        name, parent = (str(getattr(k, "key", k)) for k in path[-1:-3:-1])
+        if name == "scale":
+            return jnp.asarray(1.0 + 0.1 * rng.standard_normal(leaf.shape), leaf.dtype)
+        if name == "kernel":
+            qkv = parent in ("query", "key", "value")  # attention kernels are (D, heads, head_dim)
+            fan_in = leaf.shape[0] if qkv else int(np.prod(leaf.shape[:-1]))
+            return jnp.asarray(rng.standard_normal(leaf.shape) / np.sqrt(fan_in), leaf.dtype)
+        return jnp.asarray((1.0 if name == "cls" else 0.1) * rng.standard_normal(leaf.shape), leaf.dtype)  # bias, cls
+
+    shapes_ = jax.eval_shape(lambda *a: module.init(jax.random.key(seed), *a, **kwargs), *args)
+    return jax.tree_util.tree_map_with_path(fill, shapes_)
+
+
+def differs(a, b, tol=1e-6) -> bool:
+    return float(jnp.max(jnp.abs(a - b))) > tol
+
+
+@pytest.fixture(scope="module")
+def unet3():
+    """Tiny M = 3 U-Net inputs and variables, with and without fusion: (cfg, (x, t, cond), {fusion: variables})."""
+    cfg = tiny_cfg()
+    inputs = unet_inputs(3)
+    variables = {f: quick_init(unet_for(cfg, fusion=f), *inputs) for f in (True, False)}
+    return cfg, inputs, variables
+
+
+@pytest.fixture(scope="module")
+def policy3():
+    """Tiny M = 3 state-only PolicyNet: (cfg, obs, variables)."""
+    cfg = tiny_cfg()
+    obs = make_obs(cfg)
+    return cfg, obs, init_policy_params(cfg, A, obs, jax.random.key(0))
+
+
+# ----------------------------------------------------------------------------------------------------------- shapes
+
+
+@pytest.mark.parametrize("obs_type", ["state", "image", "pointcloud"])
+@pytest.mark.parametrize("strides", [(1,), (1, 2, 3)])
+def test_policy_shapes(obs_type, strides):
+    cfg = tiny_cfg(obs_type, strides)
+    obs = make_obs(cfg)
+    m, lh = len(strides), cfg.chunk.obs_horizon
+    x = jax.random.normal(jax.random.key(2), (B, m * LC, A))
+    t = jnp.array([0, 50])
+    net = PolicyNet(cfg, A)
+    variables = quick_init(net, obs, x, t)
+    feat = {"state": 8, "image": 8 + 8, "pointcloud": 8 + 8}[obs_type]
+    cond = run(net, variables, obs, method="encode")
+    assert cond.shape == (B, m, lh * feat)
+    out = run(net, variables, x, t, cond, method="denoise")
+    assert out.shape == (B, m * LC, A)
+    assert bool(jnp.all(jnp.isfinite(out)))
+
+
+def test_init_policy_params(policy3):
+    cfg, obs, variables = policy3
+    net = PolicyNet(cfg, A)
+    expected = jax.eval_shape(lambda: net.init(jax.random.key(0), obs, jnp.zeros((B, 3 * LC, A)), jnp.zeros((B,))))
+    assert shapes(variables) == jax.tree_util.tree_map(lambda s: s.shape, expected)
+    assert param_count(variables) == sum(p.size for p in jax.tree_util.tree_leaves(variables))
+    assert param_count(variables) == param_count(variables["params"]["obs_encoder"]) + param_count(
+        variables["params"]["unet"])
+    assert all(bool(jnp.all(jnp.isfinite(p))) for p in jax.tree_util.tree_leaves(variables))
+    cls = variables["params"]["unet"]["down0_res1"]["fusion"]["cls"]
+    assert 0.5 < float(jnp.std(cls)) < 1.5  # learned CLS token drawn from N(0, 1)
+    # the unoptimised-compile init draws the same values as a plain init
+    fusion, x = SegmentFusion(num_segments=3), jnp.ones((1, 3 * LC, 2))
+    fast, plain = init_variables(fusion, jax.random.key(3), x), fusion.init(jax.random.key(3), x)
+    assert shapes(fast) == shapes(plain)
+    for a, b in zip(jax.tree_util.tree_leaves(fast), jax.tree_util.tree_leaves(plain)):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test_encode_and_denoise_use_disjoint_params(policy3):
+    cfg, obs, variables = policy3
+    assert set(variables["params"]) == {"obs_encoder", "unet"}
+    net = PolicyNet(cfg, A)
+    enc_only = {"params": {"obs_encoder": variables["params"]["obs_encoder"]}}
+    unet_only = {"params": {"unet": variables["params"]["unet"]}}
+    cond = run(net, enc_only, obs, method="encode")
+    x, t, _ = unet_inputs(3)
+    out = run(net, unet_only, x, t, cond, method="denoise")
+    np.testing.assert_allclose(out, run(net, variables, obs, x, t), rtol=1e-5, atol=1e-5)
+
+
+def test_denoise_rejects_wrong_shapes(policy3):
+    cfg, obs, variables = policy3
+    net = PolicyNet(cfg, A)
+    cond = run(net, variables, obs, method="encode")
+    with pytest.raises(ValueError, match="x"):
+        run(net, variables, jnp.zeros((B, 2 * LC, A)), jnp.zeros((B,)), cond, method="denoise")
+    with pytest.raises(ValueError, match="action_dim"):
+        run(net, variables, jnp.zeros((B, 3 * LC, A + 1)), jnp.zeros((B,)), cond, method="denoise")
+    with pytest.raises(ValueError, match="cond"):
+        run(net, variables, jnp.zeros((B, 3 * LC, A)), jnp.zeros((B,)), cond[:, :2], method="denoise")
+
+
+# ---------------------------------------------------------------------------------------------- fusion parameters
+
+
+def test_single_frequency_is_plain_diffusion_policy_unet():
+    cfg = tiny_cfg(strides=(1,))
+    x, t, cond = unet_inputs(1)
+    with_fusion = quick_init(unet_for(cfg, fusion=True), x, t, cond)
+    without = jax.eval_shape(unet_for(cfg, fusion=False).init, jax.random.key(0), x, t, cond)
+    assert not any("fusion" in p or "cls" in p for p in paths(with_fusion))
+    assert shapes(with_fusion) == jax.tree_util.tree_map(lambda s: s.shape, without)
+    out_f = run(unet_for(cfg, fusion=True), with_fusion, x, t, cond)
+    np.testing.assert_array_equal(out_f, run(unet_for(cfg, fusion=False), with_fusion, x, t, cond))
+    # One FiLM condition for the whole sequence: every condition mode is the same network at M = 1.
+    for mode in ("low", "high"):
+        np.testing.assert_array_equal(out_f, run(unet_for(cfg, condition=mode), with_fusion, x, t, cond))
+    # A scalar timestep broadcasts over the batch.
+    same_t = run(unet_for(cfg), with_fusion, x, jnp.full((B,), 5), cond)
+    np.testing.assert_allclose(run(unet_for(cfg), with_fusion, x, 5, cond), same_t, rtol=1e-6, atol=1e-6)
+
+
+def test_fusion_parameters_at_three_frequencies(unet3):
+    cfg, _, variables = unet3
+    c0 = cfg.model.unet_dims[0]
+    params = variables[True]["params"]
+    fused = {p.split("/")[0] for p in paths(params) if "/fusion/" in p}
+    assert fused == {"down0_res0", "down0_res1"}  # both blocks of the first down level, as in the release
+    # first block: tokens are raw action segments (A * L_c); second: down_dims[0] features (C * L_c)
+    assert params["down0_res0"]["fusion"]["cls"].shape == (1, 1, A * LC)
+    assert params["down0_res1"]["fusion"]["cls"].shape == (1, 1, c0 * LC)
+    # the first conv sees [x, global] (2 C_in) and emits [local, global] (2 C); the second maps 2 C -> C
+    assert params["down0_res1"]["block0"]["conv"]["kernel"].shape == (cfg.model.unet_kernel, 2 * c0, 2 * c0)
+    assert params["down0_res1"]["block1"]["conv"]["kernel"].shape == (cfg.model.unet_kernel, 2 * c0, c0)
+    no_fusion = variables[False]["params"]
+    assert not any("fusion" in p for p in paths(no_fusion))
+    assert param_count(params) > param_count(no_fusion)
+
+
+# --------------------------------------------------------------------------------------------------- ablations
+
+
+def test_condition_modes_and_fusion_change_the_output(unet3):
+    cfg, (x, t, cond), all_variables = unet3
+    variables = all_variables[True]
+    outs = {mode: run(unet_for(cfg, condition=mode), variables, x, t, cond) for mode in ("hier", "low", "high")}
+    assert differs(outs["hier"], outs["low"])
+    assert differs(outs["hier"], outs["high"])
+    assert differs(outs["low"], outs["high"])
+    # fusion on vs off (different parameter trees, same init key)
+    assert differs(outs["hier"], run(unet_for(cfg, fusion=False), all_variables[False], x, t, cond))
+    # with the same params, the learned CLS token feeds the output
+    bumped = jax.tree_util.tree_map(lambda a: a, variables)
+    bumped["params"]["down0_res1"]["fusion"]["cls"] = bumped["params"]["down0_res1"]["fusion"]["cls"] + 1.0
+    assert differs(outs["hier"], run(unet_for(cfg), bumped, x, t, cond))
+
+
+def test_apply_film_modulates_each_segment_with_its_own_condition():
+    x = jax.random.normal(jax.random.key(0), (2, 12, 5))
+    embed = jax.random.normal(jax.random.key(1), (2, 3, 10))
+    y = apply_film(x, embed)
+    for k in range(3):
+        seg = slice(4 * k, 4 * (k + 1))
+        expected = x[:, seg] * embed[:, k, None, :5] + embed[:, k, None, 5:]
+        np.testing.assert_allclose(y[:, seg], expected, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("fusion", [True, False])
+def test_hierarchical_film_is_per_segment(unet3, fusion):
+    cfg, (x, t, cond), all_variables = unet3
+    variables = all_variables[fusion]
+    nets = {mode: unet_for(cfg, fusion=fusion, condition=mode) for mode in ("hier", "low", "high")}
+    base = {mode: run(n, variables, x, t, cond) for mode, n in nets.items()}
+    for m in range(3):
+        c2 = cond.at[:, m].add(1.0)
+        assert differs(run(nets["hier"], variables, x, t, c2), base["hier"]), f"hier ignores cond[:, {m}]"
+        low = run(nets["low"], variables, x, t, c2)
+        high = run(nets["high"], variables, x, t, c2)
+        if m == 0:
+            assert differs(low, base["low"])
+            np.testing.assert_array_equal(high, base["high"])
+        elif m == 2:
+            np.testing.assert_array_equal(low, base["low"])
+            assert differs(high, base["high"])
+        else:
+            np.testing.assert_array_equal(low, base["low"])
+            np.testing.assert_array_equal(high, base["high"])
+
+
+# ------------------------------------------------------------------------------------------------------- fusion
+
+
+def test_segment_fusion_mixes_tokens_within_each_sample_only():
+    x = jax.random.normal(jax.random.key(0), (3, 3 * LC, 4))
+    fusion = SegmentFusion(num_segments=3, num_heads=8)
+    variables = quick_init(fusion, x)
+    base = fusion.apply(variables, x)
+    assert base.shape == (3, LC, 4)
+    assert differs(base[0], base[1])  # the global feature depends on the sample (the release's does not)
+    for m in range(3):
+        y = fusion.apply(variables, x.at[1, m * LC:(m + 1) * LC].add(1.0))
+        assert differs(y[1], base[1]), f"global feature ignores segment {m}"
+        np.testing.assert_array_equal(y[0], base[0])
+        np.testing.assert_array_equal(y[2], base[2])
+
+
+def test_unet_has_no_cross_batch_leakage(unet3):
+    cfg, _, all_variables = unet3
+    x, t, cond = unet_inputs(3, b=3)
+    net = unet_for(cfg)
+    variables = all_variables[True]
+    base = run(net, variables, x, t, cond)
+    out = run(net, variables, x.at[1].add(1.0), t, cond.at[1].add(1.0))
+    assert differs(out[1], base[1])
+    np.testing.assert_allclose(out[0], base[0], rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(out[2], base[2], rtol=1e-6, atol=1e-6)
+    singles = jnp.concatenate([run(net, variables, x[i:i + 1], t[i:i + 1], cond[i:i + 1]) for i in range(3)])
+    np.testing.assert_allclose(singles, base, rtol=1e-5, atol=1e-5)
+
+
+def test_fusion_path_carries_one_segment_to_the_others(unet3):
+    """Perturb segment 0 of sample 1; compare against the same run with every fusion output frozen at its
+    unperturbed value. The difference, in segment M-1 of sample 1, is what flowed through the fusion path."""
+    cfg, (x, t, cond), all_variables = unet3
+    net = unet_for(cfg)
+    variables = all_variables[True]
+    recorded = []
+
+    def record(next_fun, args, kwargs, context):
+        out = next_fun(*args, **kwargs)
+        if isinstance(context.module, SegmentFusion) and context.method_name == "__call__":
+            recorded.append(out)
+        return out
+
+    with nn.intercept_methods(record):
+        net.apply(variables, x, t, cond)  # eager: interceptors act at trace time, a jit cache would skip them
+    assert len(recorded) == 2
+    frozen = iter(recorded)
+
+    def freeze(next_fun, args, kwargs, context):
+        if isinstance(context.module, SegmentFusion) and context.method_name == "__call__":
+            return next(frozen)
+        return next_fun(*args, **kwargs)
+
+    x2 = x.at[1, :LC].add(1.0)
+    live = net.apply(variables, x2, t, cond)
+    with nn.intercept_methods(freeze):
+        blocked = net.apply(variables, x2, t, cond)
+    last = slice(2 * LC, 3 * LC)
+    assert differs(live[1, last], blocked[1, last])
+    np.testing.assert_allclose(live[0], blocked[0], rtol=1e-6, atol=1e-6)  # sample 0's fusion input is unchanged
+
+
+# ------------------------------------------------------------------------------------------------------ encoders
+
+
+def test_random_crop_per_image_and_deterministic_centre_crop():
+    h = 12
+    grid = jnp.arange(h * h, dtype=jnp.float32).reshape(1, h, h, 1)
+    images = jnp.tile(grid, (16, 1, 1, 3))
+    a = crop_images(images, 8, jax.random.key(0))
+    b = crop_images(images, 8, jax.random.key(1))
+    assert a.shape == (16, 8, 8, 3)
+    assert differs(a, b)
+    np.testing.assert_array_equal(a, crop_images(images, 8, jax.random.key(0)))
+    assert len({float(v) for v in a[:, 0, 0, 0]}) > 1  # identical images got different offsets
+    centre = crop_images(images, 8, None)
+    np.testing.assert_array_equal(centre, images[:, 2:10, 2:10])
+    np.testing.assert_array_equal(centre, crop_images(images, 8, None))
+
+
+def test_image_encoder_train_crops_depend_on_rng():
+    enc = ImageEncoder(channels=(8, 16), num_keypoints=4, out_dim=6, crop_size=28)
+    imgs = jax.random.uniform(jax.random.key(0), (2, 3, 32, 32, 3), minval=-1.0, maxval=1.0)
+    variables = quick_init(enc, imgs)
+    evals = [enc.apply(variables, imgs) for _ in range(2)]
+    assert evals[0].shape == (2, 3, 6)
+    np.testing.assert_array_equal(evals[0], evals[1])
+    t0 = enc.apply(variables, imgs, train=True, rngs={"crop": jax.random.key(2)})
+    t1 = enc.apply(variables, imgs, train=True, rngs={"crop": jax.random.key(3)})
+    assert differs(t0, t1)
+    assert differs(t0, evals[0])
+
+
+def test_obs_encoder_shares_weights_across_frames_and_frequencies():
+    cfg = tiny_cfg("pointcloud")
+    obs = make_obs(cfg)
+    enc = ObsEncoder(cfg.encoder)
+    variables = quick_init(enc, obs)
+    cond = enc.apply(variables, obs)
+    # swapping two frequencies' windows swaps their conditions
+    swapped = {k: v[:, ::-1] for k, v in obs.items()}
+    np.testing.assert_allclose(enc.apply(variables, swapped), cond[:, ::-1], rtol=1e-5, atol=1e-5)
+    # the condition of frequency m is its L_h frame features, flattened in frame order
+    one_frame = {k: v[:, :, 1:2] for k, v in obs.items()}
+    f = cond.shape[-1] // cfg.chunk.obs_horizon
+    np.testing.assert_allclose(enc.apply(variables, one_frame), cond[:, :, f:2 * f], rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "obs_type, key, bad",
+    [
+        ("state", "state", None),
+        ("state", "state", (B, 3, 3, D, 1)),
+        ("image", "image", None),
+        ("image", "image", (B, 3, 3, 32, 32)),
+        ("image", "image", (B, 3, 3, 30, 30, 3)),
+        ("pointcloud", "point_cloud", None),
+        ("pointcloud", "point_cloud", (B, 3, 64, 3)),
+        ("pointcloud", "point_cloud", (B, 3, 3, 64, 6)),
+        ("pointcloud", "point_cloud", (B + 1, 3, 3, 64, 3)),
+    ],
+)
+def test_obs_encoder_rejects_bad_observations(obs_type, key, bad):
+    cfg = tiny_cfg(obs_type)
+    obs = make_obs(cfg)
+    if bad is None:
+        del obs[key]
+    else:
+        obs[key] = jnp.zeros(bad)
+    with pytest.raises(ValueError, match=f"obs\\['{key}'\\]"):
+        ObsEncoder(cfg.encoder).init(jax.random.key(0), obs)
