@@ -80,8 +80,11 @@ def init_variables(module: nn.Module, key: jax.Array, *args, **kwargs):
 
     Initialisation runs once, so its run time does not matter, but its compile time does: on a CPU the many
     random initialisers of a U-Net compile about 4x faster this way (e.g. ~2 s instead of ~9 s for the tiny model).
-    ``args`` are traced (arrays or pytrees of arrays); ``kwargs`` are static (e.g. ``train=False``).
+    ``args`` are traced (arrays or pytrees of arrays); ``kwargs`` are static (e.g. ``train=False``). Inside a
+    trace (``jax.eval_shape`` of a train state, say) it is a plain ``module.init``.
     """
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((key, args))):
+        return module.init(key, *args, **kwargs)
     lowered = jax.jit(lambda k, a: module.init(k, *a, **kwargs)).lower(key, args)
     return lowered.compile(compiler_options={"xla_backend_optimization_level": 0})(key, args)
 
