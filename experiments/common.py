@@ -19,7 +19,7 @@ from hipolicy_jax.config import (ChunkConfig, DiffusionConfig, ModelConfig, Poli
                                  TrainConfig)
 from hipolicy_jax.data.dataset import SequenceDataset, split_episodes
 from hipolicy_jax.data.replay_buffer import ReplayBuffer
-from hipolicy_jax.policy import calibrate_thresholds, make_policy_fn, measure_entropies, policy_obs_keys
+from hipolicy_jax.policy import PolicyArgs, calibrate_thresholds, make_policy_fn, measure_entropies, policy_obs_keys
 
 # CPU-sized defaults: the paper's windowing (strides 1/2/3, L_h 3, L_c 8) with a small U-Net.
 CPU_POLICY = PolicyConfig(chunk=ChunkConfig(), model=ModelConfig(size="cpu"), diffusion=DiffusionConfig(),
@@ -92,11 +92,11 @@ def evaluate_policy(net, params, normalizer, cfg: PolicyConfig, action_dim: int,
     from hipolicy_jax.envs.rollout import evaluate
 
     th = thresholds if (opts.entropy_guided and thresholds is not None) else None
-    policy_fn = make_policy_fn(net, params, normalizer, cfg, action_dim, num_samples=opts.num_samples,
-                               num_steps=opts.num_steps, sampler=opts.sampler,
-                               thresholds=None if th is None else np.asarray(th, np.float32))
+    policy_fn = make_policy_fn(net, cfg, action_dim, num_samples=opts.num_samples, num_steps=opts.num_steps,
+                               sampler=opts.sampler)
+    args = PolicyArgs(params, normalizer, None if th is None else np.asarray(th, np.float32))
     return evaluate(policy_fn, task, opts.episodes, key, history_len=cfg.chunk.obs_span,
-                    chunk_len=cfg.chunk.chunk_len)
+                    chunk_len=cfg.chunk.chunk_len, policy_args=args)
 
 
 def eval_summary(result) -> dict:

@@ -2,7 +2,8 @@
 
 ``make_policy_fn`` wraps the one sampler (``sampling.sample``) for ONE episode: the environment's base-rate
 observation history ``{key: (obs_span, ...)}`` → per-stride windows (``data.windowing.gather_history``) → N samples
-→ ``PolicyOutput(actions (L_c, A), stride, entropy)``. Rollouts ``vmap`` it over episodes.
+→ ``PolicyOutput(actions (L_c, A), stride, entropy)``. Rollouts ``vmap`` it over episodes; the parameters travel
+as a traced ``PolicyArgs`` so one compiled rollout serves every evaluation of a run.
 
 ``calibrate_thresholds`` turns action entropies measured on held-out data into the M+1 ascending thresholds used
 by entropy-guided execution: the paper took the 10th and 70th percentiles (for M = 3); the released values
@@ -11,8 +12,9 @@ by entropy-guided execution: the paper took the 10th and 70th percentiles (for M
 
 from __future__ import annotations
 
+import functools
 import math
-from typing import Callable, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
 import numpy as np
@@ -27,25 +29,35 @@ def policy_obs_keys(encoder: EncoderConfig) -> tuple[str, ...]:
     return {"state": ("state",), "image": ("state", "image"), "pointcloud": ("state", "point_cloud")}[encoder.obs_type]
 
 
-def make_policy_fn(net, params, normalizer, cfg: PolicyConfig, action_dim: int, *, num_samples: int | None = None,
-                   num_steps: int | None = None, sampler: str | None = None, thresholds=None) -> Callable:
-    """``policy_fn(obs_history, key) -> PolicyOutput`` for one episode (vmap it over episodes).
+class PolicyArgs(NamedTuple):
+    """The traced inputs of a policy: network variables, fitted normaliser, (M+1,) thresholds or None."""
+
+    params: Any
+    normalizer: Any
+    thresholds: Any = None
+
+
+@functools.lru_cache(maxsize=64)
+def make_policy_fn(net, cfg: PolicyConfig, action_dim: int, *, num_samples: int | None = None,
+                   num_steps: int | None = None, sampler: str | None = None) -> Callable:
+    """``policy_fn(obs_history, key, args: PolicyArgs) -> PolicyOutput`` for one episode (vmap it over episodes).
 
     obs_history: ``{key: (chunk.obs_span, ...)}`` raw base-rate observations, oldest first, padded at episode start
-    by repeating the first frame. Keys the policy does not read are ignored.
+    by repeating the first frame. Keys the policy does not read are ignored. The function is cached per static
+    setting, so rollouts compiled for it are reused when only ``args`` (new parameters, thresholds) change.
     """
     from hipolicy_jax.envs.rollout import PolicyOutput
 
     keys = policy_obs_keys(cfg.encoder)
 
-    def policy_fn(obs_history, key):
+    def policy_fn(obs_history, key, args: PolicyArgs):
         missing = [k for k in keys if k not in obs_history]
         if missing:
             raise ValueError(f"obs_history lacks {missing}; the policy reads {keys}")
         windows = gather_history({k: obs_history[k] for k in keys}, cfg.chunk)
         obs = jax.tree.map(lambda x: x[None], windows)  # (1, M, L_h, ...)
-        res = sample(params, normalizer, obs, key, net=net, cfg=cfg, action_dim=action_dim,
-                     num_samples=num_samples, num_steps=num_steps, sampler=sampler, thresholds=thresholds)
+        res = sample(args.params, args.normalizer, obs, key, net=net, cfg=cfg, action_dim=action_dim,
+                     num_samples=num_samples, num_steps=num_steps, sampler=sampler, thresholds=args.thresholds)
         return PolicyOutput(actions=res.actions[0], stride=res.stride[0], entropy=res.entropy[0])
 
     return policy_fn

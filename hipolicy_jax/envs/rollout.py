@@ -11,8 +11,12 @@ appends every new observation to the history, so a chunk predicted at stride s c
 time in L_c control steps (the execution speed-up); ``stride`` and ``entropy`` are only recorded.
 
 Policies with memory (the scripted expert) use ``evaluate_stateful`` with
-``policy_fn(obs_history, key, policy_state) -> (PolicyOutput, policy_state)`` and
+``policy_fn(obs_history, key, policy_state, policy_args) -> (PolicyOutput, policy_state)`` and
 ``init_fn(first_obs, key) -> policy_state``.
+
+Compilation is cached: ``policy_args`` (e.g. network parameters, normaliser, thresholds) is a traced pytree passed
+to ``policy_fn(obs_history, key, policy_args)``, so evaluating new parameters with the same ``policy_fn`` object
+reuses the compiled rollout instead of recompiling (20–50 s a task on a CPU).
 
 All episodes run in one jitted rollout: ``lax.scan`` over replans, an inner ``lax.scan`` over the chunk's steps.
 An episode is frozen (env state, history and policy state masked) once it is done or reaches the step limit.
@@ -20,6 +24,7 @@ An episode is frozen (env state, history and policy state masked) once it is don
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -58,7 +63,7 @@ class EvalResult(NamedTuple):
 
 
 PolicyFn = Callable[[dict[str, jax.Array], jax.Array], PolicyOutput]
-StatefulPolicyFn = Callable[[dict[str, jax.Array], jax.Array, Any], tuple[PolicyOutput, Any]]
+StatefulPolicyFn = Callable[[dict[str, jax.Array], jax.Array, Any, Any], tuple[PolicyOutput, Any]]
 InitFn = Callable[[dict[str, jax.Array], jax.Array], Any]
 
 
@@ -77,14 +82,20 @@ def _select(pred: jax.Array, new, old):
     return jax.tree.map(lambda a, b: jnp.where(pred, a, b), new, old)
 
 
+@functools.lru_cache(maxsize=16)
+def _make(task: str) -> MjxEnv:
+    return envs_lib.make(task)
+
+
 def _resolve(task: str | MjxEnv) -> MjxEnv:
-    return envs_lib.make(task) if isinstance(task, str) else task
+    """Envs are immutable, so one instance per task name keeps compiled rollouts cacheable."""
+    return _make(task) if isinstance(task, str) else task
 
 
 def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *, history_len: int,
                     chunk_len: int, max_steps: int | None = None) -> Callable[[jax.Array], tuple]:
-    """The un-batched, un-jitted rollout of one episode: ``episode(key) -> (final State, entropy (R,), stride (R,),
-    valid (R,))``. ``evaluate_stateful`` vmaps and jits it."""
+    """The un-batched, un-jitted rollout of one episode: ``episode(key, policy_args) -> (final State, entropy (R,),
+    stride (R,), valid (R,))``. ``evaluate_stateful`` vmaps and jits it."""
     if history_len < 1 or chunk_len < 1:
         raise ValueError(f"history_len and chunk_len must be >= 1, got {history_len}, {chunk_len}")
     limit = int(max_steps if max_steps is not None else env.max_steps)
@@ -93,7 +104,7 @@ def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *
     def finished(state):
         return state.done | (state.step >= limit)
 
-    def episode(key):
+    def episode(key, policy_args):
         k_reset, k_init, k_policy = jax.random.split(key, 3)
         state = env.reset(k_reset)
         history = init_history(state.obs, history_len)
@@ -102,7 +113,7 @@ def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *
         def replan(carry, r):
             state, history, pstate = carry
             valid = ~finished(state)
-            out, new_pstate = policy_fn(history, jax.random.fold_in(k_policy, r), pstate)
+            out, new_pstate = policy_fn(history, jax.random.fold_in(k_policy, r), pstate, policy_args)
             pstate = _select(valid, new_pstate, pstate)
 
             def act(inner, action):
@@ -120,28 +131,41 @@ def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *
             replan, (state, history, pstate), jnp.arange(num_replans))
         return state, entropy, stride, valid
 
-    # Check the policy's chunk shape once, abstractly.
-    def _check(key):
-        state = env.reset(key)
-        hist = init_history(state.obs, history_len)
-        return policy_fn(hist, key, init_fn(state.obs, key))[0]
-
-    out = jax.eval_shape(_check, jax.random.PRNGKey(0))
-    if out.actions.shape != (chunk_len, env.action_dim):
-        raise ValueError(f"policy_fn: actions must have shape (chunk_len={chunk_len}, A={env.action_dim}), "
-                         f"got {out.actions.shape}")
     return episode
 
 
-def evaluate_stateful(policy_fn: StatefulPolicyFn, init_fn: InitFn, task: str | MjxEnv, num_episodes: int,
-                      key: jax.Array, *, history_len: int, chunk_len: int,
-                      max_steps: int | None = None) -> EvalResult:
-    """``evaluate`` for a policy that carries its own state (see the module docstring)."""
-    env = _resolve(task)
+def check_policy_shape(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, policy_args, *,
+                       history_len: int, chunk_len: int) -> None:
+    """Check the policy's chunk shape once, abstractly (no compile)."""
+    def probe(key, args):
+        state = env.reset(key)
+        hist = init_history(state.obs, history_len)
+        return policy_fn(hist, key, init_fn(state.obs, key), args)[0]
+
+    out = jax.eval_shape(probe, jax.random.PRNGKey(0), policy_args)
+    if out.actions.shape != (chunk_len, env.action_dim):
+        raise ValueError(f"policy_fn: actions must have shape (chunk_len={chunk_len}, A={env.action_dim}), "
+                         f"got {out.actions.shape}")
+
+
+@functools.lru_cache(maxsize=32)
+def compiled_rollout(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, history_len: int, chunk_len: int,
+                     max_steps: int | None):
+    """``jit(vmap(episode))(keys (E,), policy_args)``, cached per (env, policy_fn, init_fn, shapes)."""
     episode = make_episode_fn(env, policy_fn, init_fn, history_len=history_len, chunk_len=chunk_len,
                               max_steps=max_steps)
+    return jax.jit(jax.vmap(episode, in_axes=(0, None)))
+
+
+def evaluate_stateful(policy_fn: StatefulPolicyFn, init_fn: InitFn, task: str | MjxEnv, num_episodes: int,
+                      key: jax.Array, *, history_len: int, chunk_len: int, max_steps: int | None = None,
+                      policy_args=()) -> EvalResult:
+    """``evaluate`` for a policy that carries its own state (see the module docstring)."""
+    env = _resolve(task)
+    check_policy_shape(env, policy_fn, init_fn, policy_args, history_len=history_len, chunk_len=chunk_len)
+    rollout = compiled_rollout(env, policy_fn, init_fn, history_len, chunk_len, max_steps)
     keys = jax.device_put(jax.random.split(key, num_episodes))
-    state, entropy, stride, valid = jax.jit(jax.vmap(episode))(keys)
+    state, entropy, stride, valid = rollout(keys, policy_args)
     success = state.success
     steps = state.step
     n_succ = success.sum()
@@ -150,18 +174,32 @@ def evaluate_stateful(policy_fn: StatefulPolicyFn, init_fn: InitFn, task: str | 
                       success=success, steps=steps, entropy=entropy, stride=stride, valid=valid)
 
 
-def evaluate(policy_fn: PolicyFn, task: str | MjxEnv, num_episodes: int, key: jax.Array, *, history_len: int,
-             chunk_len: int, max_steps: int | None = None) -> EvalResult:
+def _no_state(obs, key):
+    return ()
+
+
+@functools.lru_cache(maxsize=32)
+def _as_stateful(policy_fn: Callable, with_args: bool) -> StatefulPolicyFn:
+    """A stable stateful wrapper per policy_fn (stable identity keeps ``compiled_rollout``'s cache warm)."""
+    def stateful(history, key, pstate, args):
+        out = policy_fn(history, key, args) if with_args else policy_fn(history, key)
+        return out, pstate
+
+    return stateful
+
+
+def evaluate(policy_fn: Callable, task: str | MjxEnv, num_episodes: int, key: jax.Array, *, history_len: int,
+             chunk_len: int, max_steps: int | None = None, policy_args=None) -> EvalResult:
     """Run ``num_episodes`` episodes of ``task`` in parallel in one compiled rollout and score ``policy_fn``.
 
-    policy_fn(obs_history, key) -> PolicyOutput, for one episode (see the module docstring). ``max_steps``
+    policy_fn(obs_history, key) -> PolicyOutput for one episode (see the module docstring), or
+    policy_fn(obs_history, key, policy_args) when ``policy_args`` (a traced pytree) is given. ``max_steps``
     (default: the task's) caps each episode's control steps; an episode reaching it counts as a failure.
     """
-    def stateful(history, k, pstate):
-        return policy_fn(history, k), pstate
-
-    return evaluate_stateful(stateful, lambda obs, k: (), task, num_episodes, key, history_len=history_len,
-                             chunk_len=chunk_len, max_steps=max_steps)
+    stateful = _as_stateful(policy_fn, policy_args is not None)
+    return evaluate_stateful(stateful, _no_state, task, num_episodes, key, history_len=history_len,
+                             chunk_len=chunk_len, max_steps=max_steps,
+                             policy_args=() if policy_args is None else policy_args)
 
 
 class ExpertState(NamedTuple):
@@ -182,7 +220,7 @@ def expert_policy(task: str | MjxEnv, chunk_len: int, stride: int = 1) -> tuple[
     def init_fn(obs, key):
         return ExpertState(plan=env.expert_plan(obs["state"], key), t=jnp.zeros((), jnp.float32))
 
-    def policy_fn(history, key, pstate):
+    def policy_fn(history, key, pstate, args):
         ts = pstate.t + stride * jnp.arange(chunk_len, dtype=jnp.float32)
         actions = jax.vmap(lambda t: env.expert_action(pstate.plan, t))(ts)
         out = PolicyOutput(actions=actions, stride=jnp.int32(stride), entropy=jnp.zeros((), jnp.float32))

@@ -38,7 +38,7 @@ class Trajectory(NamedTuple):
 
 
 def record_trajectory(env: MjxEnv, key: jax.Array, policy_fn=None, init_fn=None, *, chunk_len: int = 8,
-                      history_len: int = 1, max_steps: int | None = None) -> Trajectory:
+                      history_len: int = 1, max_steps: int | None = None, policy_args=()) -> Trajectory:
     """Run one episode of a stateful policy (default: the scripted expert at stride 1) and record its qpos."""
     if policy_fn is None:
         policy_fn, init_fn = rollout.expert_policy(env, chunk_len)
@@ -53,7 +53,7 @@ def record_trajectory(env: MjxEnv, key: jax.Array, policy_fn=None, init_fn=None,
 
         def replan(carry, r):
             state, history, pstate = carry
-            out, pstate = policy_fn(history, jax.random.fold_in(k_pol, r), pstate)
+            out, pstate = policy_fn(history, jax.random.fold_in(k_pol, r), pstate, policy_args)
 
             def act(inner, action):
                 state, history = inner
