@@ -4,6 +4,14 @@ Resume is exact: step k's batch is ``dataset.batch_indices(data_key, k)`` and it
 both functions of the seed and the step only, and the restored ``TrainState`` carries the step. Re-running the same
 command after a stop continues the same loss sequence.
 
+Crash safety: orbax writes a step into a temporary directory and renames it when complete, so a run killed mid-write
+leaves no half step behind (the leftover temporary directory is reported and removed). A step that is listed but
+cannot be restored (truncated or corrupted files) is reported, moved aside to ``checkpoints/corrupt_<step>`` and the
+next older step is used.
+
+Data parallelism: with several devices (or ``num_devices``) the batch is sharded over a ``("data",)`` mesh and the
+state replicated (``parallel``); the loss sequence matches single-device training on the same global batches.
+
 Outputs under ``out_dir``: ``checkpoints/<step>/``, ``metrics.jsonl`` (one JSON object per log / eval event) and
 TensorBoard event files under ``tb/``.
 """
@@ -12,6 +20,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 from typing import Callable, NamedTuple
 
@@ -22,6 +31,7 @@ from tqdm.auto import tqdm
 from hipolicy_jax.checkpoint import Checkpointer, config_to_dict
 from hipolicy_jax.config import PolicyConfig, TrainConfig
 from hipolicy_jax.models.policy_net import PolicyNet, init_policy_params, param_count
+from hipolicy_jax import parallel
 from hipolicy_jax.training import TrainState, init_train_state, make_optimizer, make_train_step
 
 
@@ -52,6 +62,51 @@ def _same_config(a: dict, b: dict, keys=("policy", "action_dim", "obs_shapes")) 
     return all(json.dumps(a.get(k), sort_keys=True) == json.dumps(b.get(k), sort_keys=True) for k in keys)
 
 
+def _report(msg: str) -> None:
+    print(f"[checkpoint] {msg}", flush=True)
+
+
+def clean_incomplete_writes(directory: str) -> list[str]:
+    """Remove orbax's temporary directories left by a write that never committed; → their names."""
+    if not os.path.isdir(directory):
+        return []
+    leftovers = sorted(d for d in os.listdir(directory) if "orbax-checkpoint-tmp" in d)
+    for d in leftovers:
+        shutil.rmtree(os.path.join(directory, d), ignore_errors=True)
+        _report(f"removed incomplete checkpoint write {d} (the run stopped while saving)")
+    return leftovers
+
+
+def restore_newest_readable(directory: str, abstract, meta: dict):
+    """Restore the newest checkpoint that reads back; move unreadable ones aside. → (state, step) or (None, None).
+
+    Raises ValueError when the newest readable checkpoint belongs to a different config.
+    """
+    with Checkpointer(directory) as probe:
+        steps = sorted(probe.all_steps(), reverse=True)
+    for step in steps:
+        try:
+            with Checkpointer(directory) as ckpt:
+                old = ckpt.restore_meta(step)
+                if not _same_config(old, meta):
+                    raise ValueError(f"{os.path.dirname(directory)} holds checkpoints of a different policy config "
+                                     f"or data shapes; pass a new output directory or delete the old one")
+                state, _, _ = ckpt.restore(step, abstract)
+            return state, step
+        except ValueError as e:
+            if "different policy config" in str(e):
+                raise
+            bad = e
+        except Exception as e:  # noqa: BLE001 — any read failure means this step is unusable
+            bad = e
+        aside = os.path.join(directory, f"corrupt_{step}")
+        shutil.rmtree(aside, ignore_errors=True)
+        os.rename(os.path.join(directory, str(step)), aside)
+        _report(f"step {step} is unreadable ({type(bad).__name__}: {str(bad)[:200]}); moved to {aside}, "
+                f"trying an older step")
+    return None, None
+
+
 class _Logger:
     def __init__(self, out_dir: str, tensorboard: bool):
         self._jsonl = open(os.path.join(out_dir, "metrics.jsonl"), "a")
@@ -78,11 +133,12 @@ class _Logger:
 def fit(cfg: PolicyConfig, train_cfg: TrainConfig, dataset, out_dir: str, *,
         eval_fn: Callable[[TrainState, int], dict] | None = None, eval_every: int | None = None,
         meta_extra: dict | None = None, progress: bool = True, tensorboard: bool = True,
-        stop_at: int | None = None) -> FitResult:
+        stop_at: int | None = None, num_devices: int | None = None) -> FitResult:
     """Train (or resume) a policy on ``dataset`` (a ``data.dataset.SequenceDataset``).
 
     ``eval_fn(state, step) -> dict`` runs every ``eval_every`` steps and at the end; its scalars are logged.
     ``stop_at`` stops early after that step (used to simulate an interrupted run) without a final evaluation.
+    ``num_devices``: data-parallel devices (default: all local devices).
     """
     os.makedirs(out_dir, exist_ok=True)
     keys = run_keys(train_cfg.seed)
@@ -94,20 +150,26 @@ def fit(cfg: PolicyConfig, train_cfg: TrainConfig, dataset, out_dir: str, *,
     tx = make_optimizer(train_cfg)
     meta = checkpoint_meta(cfg, train_cfg, example, meta_extra)
 
-    ckpt = Checkpointer(os.path.join(out_dir, "checkpoints"), train_cfg.ckpt_every, train_cfg.ckpt_keep)
-    latest = ckpt.latest_step()
-    if latest is None:
-        state = init_train_state(init_policy_params(cfg, action_dim, example["obs"], keys["init"]), tx)
+    mesh = parallel.make_mesh(num_devices)
+    parallel.check_batch_size(train_cfg.batch_size, mesh)
+    ckpt_dir = os.path.join(out_dir, "checkpoints")
+    clean_incomplete_writes(ckpt_dir)
+
+    def fresh():
+        return init_train_state(init_policy_params(cfg, action_dim, example["obs"], keys["init"]), tx)
+
+    state, restored = None, None
+    if os.path.isdir(ckpt_dir):
+        state, restored = restore_newest_readable(ckpt_dir, jax.eval_shape(fresh), meta)
+    if state is None:
+        state = fresh()
     else:
-        old = ckpt.restore_meta(latest)
-        if not _same_config(old, meta):
-            raise ValueError(f"{out_dir} holds checkpoints of a different policy config or data shapes; "
-                             f"pass a new output directory or delete the old one")
-        abstract = jax.eval_shape(lambda: init_train_state(
-            init_policy_params(cfg, action_dim, example["obs"], keys["init"]), tx))
-        state, _, _ = ckpt.restore(latest, abstract)
+        _report(f"resuming from step {restored}")
+    state = parallel.replicate(state, mesh)
+    ckpt = Checkpointer(ckpt_dir, train_cfg.ckpt_every, train_cfg.ckpt_keep)
     start = int(state.step)
     meta["param_count"] = param_count(state.params)
+    meta["num_devices"] = 1 if mesh is None else mesh.size
     train_step = make_train_step(net, cfg, train_cfg, tx)
     logger = _Logger(out_dir, tensorboard)
     end = train_cfg.num_steps if stop_at is None else min(stop_at, train_cfg.num_steps)
@@ -119,6 +181,7 @@ def fit(cfg: PolicyConfig, train_cfg: TrainConfig, dataset, out_dir: str, *,
     try:
         for step in range(start, end):
             batch = dataset.get_batch(dataset.batch_indices(keys["data"], step, train_cfg.batch_size))
+            batch = parallel.shard_batch(batch, mesh)
             state, metrics = train_step(state, batch, keys["noise"])
             pending.append(metrics)
             done = step + 1
