@@ -36,6 +36,8 @@ class TrainArgs:
     train: TrainConfig = CPU_TRAIN
     eval: EvalOptions = EvalOptions()
     progress: bool = True
+    dry_run: bool = False  # validate config and data, print shapes and parameter count, train nothing
+    num_devices: int | None = None  # data-parallel devices (default: all local devices)
 
     def out_dir(self) -> str:
         return self.out or os.path.join("runs", f"{self.task}_{self.policy.encoder.obs_type}_seed{self.train.seed}")
@@ -44,7 +46,39 @@ class TrainArgs:
         return self.data or default_data_path(self.task, policy_obs_keys(self.policy.encoder), self.episodes)
 
 
+def dry_run(args: TrainArgs) -> dict:
+    """Check the config and the dataset, print what training would see; nothing is trained or written."""
+    from hipolicy_jax import parallel
+    from hipolicy_jax.data.replay_buffer import ReplayBuffer
+    from hipolicy_jax.models.policy_net import init_policy_params, param_count
+
+    path = args.data_path()
+    mesh = parallel.make_mesh(args.num_devices)
+    parallel.check_batch_size(args.train.batch_size, mesh)
+    info = {"task": args.task, "data": path, "devices": 1 if mesh is None else mesh.size}
+    if not os.path.exists(path):
+        print(f"dataset {path} does not exist: training would first collect {args.episodes} expert demos of "
+              f"{args.task}")
+        return info
+    buffer = ReplayBuffer.load(path)
+    train_ds, val_ds = build_datasets(buffer, args.policy, args.val_ratio, args.train.seed)
+    if len(train_ds) < args.train.batch_size:
+        raise ValueError(f"train.batch_size: {args.train.batch_size} exceeds the {len(train_ds)} training windows")
+    batch = train_ds.get_batch(np.arange(2))
+    action_dim = int(batch["action"].shape[-1])
+    abstract = jax.eval_shape(lambda: init_policy_params(args.policy, action_dim, batch["obs"], jax.random.key(0)))
+    info.update(episodes=buffer.num_episodes, frames=buffer.num_frames, train_windows=len(train_ds),
+                heldout_windows=len(val_ds), param_count=param_count(abstract),
+                batch={"action": [args.train.batch_size, *batch["action"].shape[1:]],
+                       **{f"obs.{k}": [args.train.batch_size, *v.shape[1:]] for k, v in batch["obs"].items()}})
+    for k, v in info.items():
+        print(f"{k:>16}: {v}")
+    return info
+
+
 def main(args: TrainArgs) -> dict:
+    if args.dry_run:
+        return dry_run(args)
     out = args.out_dir()
     os.makedirs(out, exist_ok=True)
     t0 = time.perf_counter()
@@ -69,7 +103,7 @@ def main(args: TrainArgs) -> dict:
 
     result = fit(cfg, args.train, train_ds, out, eval_fn=eval_fn, eval_every=args.eval.every or None,
                  meta_extra={"task": args.task, "data": os.path.abspath(args.data_path()),
-                             "val_ratio": args.val_ratio}, progress=args.progress)
+                             "val_ratio": args.val_ratio}, progress=args.progress, num_devices=args.num_devices)
     params = result.state.ema_params
     thresholds, entropies = calibrate(result.net, params, train_ds.normalizer, cfg, action_dim, val_ds, args.eval,
                                       keys["eval"])
@@ -92,4 +126,7 @@ def main(args: TrainArgs) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(TrainArgs))
+    try:
+        main(tyro.cli(TrainArgs))
+    except (ValueError, FileNotFoundError, FileExistsError, FloatingPointError) as e:
+        raise SystemExit(f"error: {e}")
