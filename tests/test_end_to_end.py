@@ -1,5 +1,6 @@
 """Tiny end to end run of the main job: collect demos → train a few steps → calibrate → batched MJX rollouts."""
 
+import dataclasses
 import json
 import math
 
@@ -38,3 +39,8 @@ def test_train_calibrate_evaluate_tiny(tmp_path):
     # re-running the finished command resumes at the end: no training steps, same checkpoint
     again = main(args)
     assert again["steps"] == 12
+
+    # --dry-run validates and reports without training
+    info = main(dataclasses.replace(args, dry_run=True))
+    assert info["param_count"] > 0 and info["episodes"] == 6
+    assert info["batch"]["action"] == [16, 24, 4] and info["batch"]["obs.state"][:3] == [16, 3, 3]

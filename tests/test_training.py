@@ -107,3 +107,19 @@ def test_train_step_compiles_once(dataset):
         state, metrics = step(state, dataset.get_batch(np.arange(16) + i), jax.random.key(1))
     assert int(state.step) == 3 and bool(metrics["finite"])
     assert step._cache_size() == 1
+
+
+def test_sampler_with_real_network_compiles_once(dataset):
+    cfg = tiny_cfg(sampler="ddim", num_inference_steps=4)
+    batch = dataset.get_batch(np.arange(3))
+    net = PolicyNet(cfg, 2)
+    p1 = init_policy_params(cfg, 2, batch["obs"], jax.random.key(0))
+    p2 = init_policy_params(cfg, 2, batch["obs"], jax.random.key(1))
+    before = sample_jit._cache_size()
+    r1 = sample_jit(p1, dataset.normalizer, batch["obs"], jax.random.key(0), net=net, cfg=cfg, action_dim=2,
+                    obs_normalized=True)
+    r2 = sample_jit(p2, dataset.normalizer, batch["obs"], jax.random.key(5), net=PolicyNet(cfg, 2), cfg=cfg,
+                    action_dim=2, obs_normalized=True)
+    assert sample_jit._cache_size() == before + 1, "new params / keys / an equal net must not retrace"
+    assert r1.chunks.shape == (3, 32, 8, 2) and r1.actions.shape == (3, 4, 2)
+    assert not np.allclose(np.asarray(r1.chunks), np.asarray(r2.chunks))
