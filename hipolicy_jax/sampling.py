@@ -4,12 +4,15 @@
 compiled call
 
 1. normalises the observation windows and encodes them ONCE → condition (B, M, Dc);
-2. denoises N independent noise draws per observation: ``vmap`` over the N sample keys, ``lax.scan`` over the
+2. computes the FiLM heads' observation half ``mish(cond)·W_c + b`` once per call, when the network offers
+   ``film_condition`` / ``film_steps`` / ``denoise_film`` as ``PolicyNet`` does (a network with only ``encode`` /
+   ``denoise`` is called per step with the condition);
+3. denoises N independent noise draws per observation: ``vmap`` over the N sample keys, ``lax.scan`` over the
    reverse steps of a precomputed DDPM or DDIM table (``diffusion.reverse_table``);
-3. unnormalises the chunks → (B, N, M·L_c, A);
-4. computes the action entropy H = mean over frequencies, steps and action dims of 0.5·log(2πe·var + ε), with the
+4. unnormalises the chunks → (B, N, M·L_c, A);
+5. computes the action entropy H = mean over frequencies, steps and action dims of 0.5·log(2πe·var + ε), with the
    ddof=1 variance over the N samples of the *unnormalised* actions (as the reference release);
-5. selects the execution frequency from ascending thresholds (lowest entropy → highest frequency) and returns
+6. selects the execution frequency from ascending thresholds (lowest entropy → highest frequency) and returns
    sample 0's chunk at that frequency.
 
 Chunk layout (see ``config``): segments in descending-stride order, so stride ``strides[k]`` (frequency index k,
@@ -67,18 +70,33 @@ def segment_of(chunk: ChunkConfig, chunks: jax.Array, freq_index: jax.Array) -> 
     return jnp.take_along_axis(segs, (m - 1 - freq_index)[:, None, None, None], axis=1)[:, 0]
 
 
-def denoise_chain(net, params, cond: jax.Array, key: jax.Array, *, cfg: PolicyConfig, action_dim: int,
-                  table: diffusion.ReverseTable) -> jax.Array:
-    """One reverse chain for a batch: cond (B, M, Dc) → normalised chunks (B, M·L_c, A)."""
-    batch = cond.shape[0]
+def precomputes_film(net) -> bool:
+    """Whether ``net`` offers the FiLM precompute protocol (``film_condition``, ``film_steps``, ``denoise_film``)."""
+    return all(hasattr(net, m) for m in ("film_condition", "film_steps", "denoise_film"))
+
+
+def denoise_chain(net, params, cond, key: jax.Array, *, cfg: PolicyConfig, action_dim: int,
+                  table: diffusion.ReverseTable, film: bool = False) -> jax.Array:
+    """One reverse chain for a batch → normalised chunks (B, M·L_c, A).
+
+    ``cond``: the condition (B, M, Dc), or with ``film`` the precomputed FiLM observation halves
+    ``{block: (B, K, 2C)}`` (``film_condition``); each step then only adds its step half (one row of ``film_steps``,
+    one row per block). The step halves are deliberately not precomputed into an (S, 2C) table sliced inside the
+    loop: on XLA:CPU that made the whole sampler ~1.5x slower (``benchmarks/results/PERFORMANCE.md``).
+    """
+    batch = jax.tree.leaves(cond)[0].shape[0]
     shape = (batch, cfg.chunk.horizon, action_dim)
     key, k0 = jax.random.split(key)
     x = jax.random.normal(k0, shape, jnp.float32)
 
     def body(x, row_and_key):
         row, k = row_and_key
-        t = jnp.full((batch,), row.timesteps, jnp.int32)
-        out = net.apply(params, x, t, cond, method=net.denoise)
+        if film:
+            step = jax.tree.map(lambda a: a[0], net.apply(params, row.timesteps[None], method=net.film_steps))
+            out = net.apply(params, x, step, cond, method=net.denoise_film)
+        else:
+            t = jnp.full((batch,), row.timesteps, jnp.int32)
+            out = net.apply(params, x, t, cond, method=net.denoise)
         z = jax.random.normal(k, shape, jnp.float32)
         return diffusion.reverse_step(cfg.diffusion, row, x, out, z), None
 
@@ -107,7 +125,11 @@ def sample(params, normalizer, obs: dict[str, jax.Array], key: jax.Array, *, net
     thresholds = thresholds if thresholds is not None else cfg.sampling.thresholds
     table = diffusion.reverse_table(cfg.diffusion, num_steps, sampler)
     cond = net.apply(params, obs if obs_normalized else normalizer.normalize_obs(obs), method=net.encode)
-    chain = functools.partial(denoise_chain, net, params, cond, cfg=cfg, action_dim=action_dim, table=table)
+    film = precomputes_film(net)
+    if film:
+        cond = net.apply(params, cond, method=net.film_condition)  # {block: (B, K, 2C)}, once per call
+    chain = functools.partial(denoise_chain, net, params, cond, cfg=cfg, action_dim=action_dim, table=table,
+                              film=film)
     chunks = jax.vmap(chain)(jax.random.split(key, n))  # (N, B, T, A)
     chunks = normalizer.unnormalize("action", jnp.swapaxes(chunks, 0, 1))  # (B, N, T, A)
     if n >= 2:

@@ -6,7 +6,13 @@ The sampler encodes the observation once and then denoises many times::
     eps = net.apply(variables, x, t, cond, method=PolicyNet.denoise)         # inside lax.scan
 
 ``encode`` touches only the encoder's parameters and ``denoise`` only the U-Net's, so the scan body never re-runs
-the encoder. ``init_policy_params`` returns the full variables dict (``{"params": ...}``) accepted by ``apply``.
+the encoder. The sampler goes one step further and also hoists the observation half of the FiLM heads::
+
+    film_c = net.apply(variables, cond, method=PolicyNet.film_condition)     # {block: (B, K, 2C)}, once
+    film_t = net.apply(variables, t[None], method=PolicyNet.film_steps)      # {block: (1, 2C)}, per step
+    eps = net.apply(variables, x, film_t_row, film_c, method=PolicyNet.denoise_film)   # inside lax.scan
+
+``init_policy_params`` returns the full variables dict (``{"params": ...}``) accepted by ``apply``.
 """
 
 from __future__ import annotations
@@ -19,7 +25,7 @@ import flax.linen as nn
 
 from hipolicy_jax.config import PolicyConfig
 from hipolicy_jax.models.encoders import ObsEncoder
-from hipolicy_jax.models.unet import ConditionalUnet1D
+from hipolicy_jax.models.unet import ConditionalUnet1D, FiLMParts
 
 
 class PolicyNet(nn.Module):
@@ -57,6 +63,23 @@ class PolicyNet(nn.Module):
         if x.shape[-1] != self.action_dim:
             raise ValueError(f"x: expected shape (B, M*L_c, action_dim={self.action_dim}), got {x.shape}")
         return self.unet(x, timesteps, cond)
+
+    def film_condition(self, cond: jax.Array) -> dict[str, jax.Array]:
+        """Observation half of every U-Net block's FiLM: condition ``(B, M, Dc)`` -> ``{block: (B, K, 2C)}``."""
+        return self.unet.film_condition(cond)
+
+    def film_steps(self, timesteps: jax.Array) -> dict[str, jax.Array]:
+        """Step half of every U-Net block's FiLM for a reverse schedule: ``(S,)`` -> ``{block: (S, 2C)}``."""
+        return self.unet.film_steps(timesteps)
+
+    def denoise_film(self, x: jax.Array, film_step: dict[str, jax.Array], film_cond: dict[str, jax.Array]) -> jax.Array:
+        """``denoise`` with precomputed FiLM halves: ``film_step`` ``{block: (2C,) or (B, 2C)}`` (one row of
+        ``film_steps``) and ``film_cond`` ``{block: (B, K, 2C)}`` (``film_condition``) -> ``(B, M*L_c, A)``.
+        Equal to ``denoise(x, t, cond)`` up to float rounding."""
+        if x.shape[-1] != self.action_dim:
+            raise ValueError(f"x: expected shape (B, M*L_c, action_dim={self.action_dim}), got {x.shape}")
+        film = {name: FiLMParts(film_step[name], film_cond[name]) for name in film_cond}
+        return self.unet(x, None, None, film=film)
 
     def __call__(self, obs, x: jax.Array, timesteps: jax.Array, train: bool = False) -> jax.Array:
         """``denoise(x, timesteps, encode(obs, train))``; used for initialisation and the training loss."""

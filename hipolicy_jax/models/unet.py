@@ -25,6 +25,13 @@ frequency first); the condition ``cond`` is ``(B, M, Dc)`` in the same order. Co
   multiple (the output projection still returns ``L_c*C_in``); when it is a multiple (every release setting) the
   attention has the release's shape.
 
+* **FiLM split (sampling speed).** Mish is element-wise and the FiLM head is linear, so
+  ``Dense(mish([step ⊕ cond])) = mish(step)·W_t + (mish(cond)·W_c + b)`` with ``W_t, W_c`` the first ``d`` and the
+  remaining rows of the head's kernel. The parameter tree is unchanged (``film/kernel`` ``(d+Dc, 2C)``,
+  ``film/bias``). The sampler computes the observation half with ``film_condition`` once per call; inside the
+  denoising loop only the step half (``film_steps``, one row per step) is computed and added
+  (``__call__(..., film=...)``).
+
 With ``M == 1`` the module is exactly a single-frequency Diffusion Policy U-Net: no fusion parameters and one FiLM
 condition for the whole sequence. Diffusion Policy's quirk of never using the first level's skip connection is kept
 (the up path has ``levels-1`` stages, each consuming one skip from the deepest level upward).
@@ -33,7 +40,7 @@ condition for the whole sequence. Diffusion Policy's quirk of never using the fi
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -42,16 +49,87 @@ import flax.linen as nn
 ConditionMode = Literal["hier", "low", "high"]
 
 
+def mish(x: jax.Array) -> jax.Array:
+    """Mish ``x·tanh(softplus(x))`` with one ``exp`` instead of ``exp + log1p + tanh``; same shape and dtype.
+
+    ``tanh(log(1 + e)) = n / (n + 2)`` with ``e = exp(x)``, ``n = e·(e + 2)``. For ``x ≥ 20`` the ratio is 1 in
+    float32, so ``x`` is clipped there before the ``exp`` (no ``inf / inf``). Matches ``jax.nn.mish`` to float32
+    rounding (max abs. difference ~2e-6 on [-30, 30]) and is ~10 % faster for the U-Net on a CPU, where the
+    element-wise work competes with the convolutions.
+    """
+    e = jnp.exp(jnp.minimum(x, 20.0))
+    n = e * (e + 2.0)
+    return x * (n / (n + 2.0))
+
+
+def sinusoidal_embedding(t: jax.Array, dim: int) -> jax.Array:
+    """Diffusion Policy's sinusoidal step embedding: ``(...,) -> (..., dim)`` (``[sin, cos]``, base 10000)."""
+    half = dim // 2
+    freqs = jnp.exp(jnp.arange(half, dtype=jnp.float32) * -(math.log(10000.0) / (half - 1)))
+    arg = jnp.asarray(t).astype(jnp.float32)[..., None] * freqs
+    return jnp.concatenate([jnp.sin(arg), jnp.cos(arg)], axis=-1)
+
+
 class SinusoidalPosEmb(nn.Module):
     """Diffusion Policy's sinusoidal step embedding: ``(B,) -> (B, dim)`` (``[sin, cos]``, base 10000)."""
 
     dim: int
 
     def __call__(self, t: jax.Array) -> jax.Array:
-        half = self.dim // 2
-        freqs = jnp.exp(jnp.arange(half, dtype=jnp.float32) * -(math.log(10000.0) / (half - 1)))
-        arg = t.astype(jnp.float32)[:, None] * freqs[None, :]
-        return jnp.concatenate([jnp.sin(arg), jnp.cos(arg)], axis=-1)
+        return sinusoidal_embedding(t, self.dim)
+
+
+class FiLMInput(NamedTuple):
+    """Raw FiLM conditioning of one denoiser call: step embedding ``(B, d)`` and condition ``(B, K, Dc)``."""
+
+    step: jax.Array
+    cond: jax.Array
+
+
+class FiLMParts(NamedTuple):
+    """Precomputed halves of one block's FiLM head: ``step = mish(step)·W_t`` ``(2C,)`` or ``(B, 2C)`` and
+    ``cond = mish(cond)·W_c + b`` ``(B, K, 2C)``; the FiLM embedding is their broadcast sum ``(B, K, 2C)``."""
+
+    step: jax.Array
+    cond: jax.Array
+
+
+def film_step_part(film_params, step: jax.Array) -> jax.Array:
+    """``mish(step)·W_t``: step ``(..., d)`` -> ``(..., 2C)``; ``film_params`` is a block's ``film`` subtree."""
+    return mish(step) @ film_params["kernel"][: step.shape[-1]]
+
+
+def film_cond_part(film_params, cond: jax.Array) -> jax.Array:
+    """``mish(cond)·W_c + b``: cond ``(..., Dc)`` -> ``(..., 2C)``; ``W_c`` is the last ``Dc`` rows of the kernel."""
+    kernel = film_params["kernel"]
+    return mish(cond) @ kernel[kernel.shape[0] - cond.shape[-1]:] + film_params["bias"]
+
+
+def film_embed(parts: FiLMParts) -> jax.Array:
+    """``(B, K, 2C)`` FiLM embedding from its two precomputed halves (the step half broadcasts over ``K``)."""
+    return parts.cond + parts.step[..., None, :]
+
+
+class FiLMHead(nn.Module):
+    """Diffusion Policy's ``cond_encoder`` (``Mish -> Linear(features)``), with ``nn.Dense``'s parameter tree.
+
+    ``film`` is one of: an array ``(B, K, Din)`` (the concatenated ``[step ⊕ cond]``: ``mish(film)·W + b``), a
+    ``FiLMInput`` (the same through the split ``mish(step)·W_t + mish(cond)·W_c + b``) or precomputed ``FiLMParts``
+    (only the broadcast sum). Returns ``(B, K, features)``.
+    """
+
+    features: int
+
+    @nn.compact
+    def __call__(self, film) -> jax.Array:
+        if isinstance(film, FiLMParts):
+            return film_embed(film)
+        din = film.step.shape[-1] + film.cond.shape[-1] if isinstance(film, FiLMInput) else film.shape[-1]
+        params = {"kernel": self.param("kernel", nn.initializers.lecun_normal(), (din, self.features)),
+                  "bias": self.param("bias", nn.initializers.zeros_init(), (self.features,))}
+        if isinstance(film, FiLMInput):
+            return film_embed(FiLMParts(film_step_part(params, film.step), film_cond_part(params, film.cond)))
+        return mish(film) @ params["kernel"] + params["bias"]
 
 
 class Conv1dBlock(nn.Module):
@@ -65,7 +143,7 @@ class Conv1dBlock(nn.Module):
     def __call__(self, x: jax.Array) -> jax.Array:
         x = nn.Conv(self.out_channels, (self.kernel_size,), padding=self.kernel_size // 2, name="conv")(x)
         x = nn.GroupNorm(num_groups=self.n_groups, epsilon=1e-5, name="norm")(x)
-        return jax.nn.mish(x)
+        return mish(x)
 
 
 class SegmentFusion(nn.Module):
@@ -109,8 +187,9 @@ def apply_film(x: jax.Array, embed: jax.Array) -> jax.Array:
 class ConditionalResidualBlock1D(nn.Module):
     """Residual block with per-segment FiLM and optional global fusion: ``(B, T, C_in) -> (B, T, out_channels)``.
 
-    ``film_cond`` is ``(B, K, Dcond)`` with ``K`` dividing ``T`` (``K = M`` for hierarchical FiLM, ``K = 1`` for a
-    single condition). With ``fusion`` the block follows the release's first-level block (module docstring);
+    ``film_cond`` is what ``FiLMHead`` takes: ``(B, K, Dcond)`` ``[step ⊕ cond]``, a ``FiLMInput`` or this block's
+    precomputed ``FiLMParts``, with ``K`` dividing ``T`` (``K = M`` for hierarchical FiLM, ``K = 1`` for a single
+    condition). With ``fusion`` the block follows the release's first-level block (module docstring);
     ``num_segments`` (M) is then the number of fusion tokens besides CLS.
     """
 
@@ -122,9 +201,9 @@ class ConditionalResidualBlock1D(nn.Module):
     fusion_heads: int = 8
 
     @nn.compact
-    def __call__(self, x: jax.Array, film_cond: jax.Array) -> jax.Array:
+    def __call__(self, x: jax.Array, film_cond) -> jax.Array:
         c = self.out_channels
-        embed = nn.Dense(2 * c, name="film")(jax.nn.mish(film_cond))  # (B, K, 2C)
+        embed = FiLMHead(2 * c, name="film")(film_cond)  # (B, K, 2C)
         if self.fusion:
             glob = SegmentFusion(self.num_segments, self.fusion_heads, name="fusion")(x)  # (B, L, C_in)
             glob = jnp.tile(glob, (1, self.num_segments, 1))  # same global feature for every segment
@@ -173,45 +252,87 @@ class ConditionalUnet1D(nn.Module):
         if cond.ndim != 3 or cond.shape[:2] != (x.shape[0], m):
             raise ValueError(f"cond: expected shape (B={x.shape[0]}, M={m}, Dc), got {cond.shape}")
 
-    @nn.compact
-    def __call__(self, x: jax.Array, timesteps: jax.Array, cond: jax.Array) -> jax.Array:
-        self._check(x, cond)
-        b, _, a = x.shape
-        d = self.step_embed_dim
-        t = jnp.broadcast_to(jnp.asarray(timesteps), (b,))
-        step = SinusoidalPosEmb(d)(t)
-        step = nn.Dense(4 * d, name="step_dense0")(step)
-        step = nn.Dense(d, name="step_dense1")(jax.nn.mish(step))  # (B, d)
+    def block_specs(self) -> tuple[tuple[str, int, bool], ...]:
+        """``(name, channels, fusion)`` of every residual block, in call order (the FiLM precompute's keys)."""
+        specs = []
+        for i, ch in enumerate(self.down_dims):
+            fuse = self.uses_fusion and i == 0
+            specs += [(f"down{i}_res0", ch, fuse), (f"down{i}_res1", ch, fuse)]
+        specs += [("mid_res0", self.down_dims[-1], False), ("mid_res1", self.down_dims[-1], False)]
+        for j, ch in enumerate(reversed(self.down_dims[:-1])):
+            specs += [(f"up{j}_res0", ch, False), (f"up{j}_res1", ch, False)]
+        return tuple(specs)
 
+    def _film_cond(self, cond: jax.Array) -> jax.Array:
+        """The per-segment conditions the FiLM heads see: ``(B, M, Dc)`` -> ``(B, K, Dc)`` (``K = 1`` for low/high)."""
         if self.condition == "low":
-            cond = cond[:, :1]
-        elif self.condition == "high":
-            cond = cond[:, -1:]
-        k = cond.shape[1]
-        film_cond = jnp.concatenate([jnp.broadcast_to(step[:, None, :], (b, k, d)), cond], axis=-1)
+            return cond[:, :1]
+        if self.condition == "high":
+            return cond[:, -1:]
+        return cond
 
-        def res(ch, name, fuse=False):
-            return ConditionalResidualBlock1D(ch, self.kernel_size, self.n_groups, fuse, self.num_freqs,
-                                              self.fusion_heads, name=name)
+    def film_condition(self, cond: jax.Array) -> dict[str, jax.Array]:
+        """Observation half of every block's FiLM, once per sampler call: cond ``(B, M, Dc)`` -> ``{block: (B, K,
+        2C)}`` = ``mish(cond)·W_c + b``. Reads the bound parameters (call through ``apply``)."""
+        params = self.variables["params"]
+        cond = self._film_cond(cond)
+        return {name: film_cond_part(params[name]["film"], cond) for name, _, _ in self.block_specs()}
+
+    def film_steps(self, timesteps: jax.Array) -> dict[str, jax.Array]:
+        """Step half of every block's FiLM: timesteps ``(S,)`` -> ``{block: (S, 2C)}`` = ``mish(step_mlp(t))·W_t``."""
+        params = self.variables["params"]
+        d = self.step_embed_dim
+        dense0, dense1 = params["step_dense0"], params["step_dense1"]
+        step = sinusoidal_embedding(timesteps, d) @ dense0["kernel"] + dense0["bias"]  # as nn.Dense(4d)
+        step = mish(step) @ dense1["kernel"] + dense1["bias"]  # (S, d), as nn.Dense(d)
+        return {name: film_step_part(params[name]["film"], step) for name, _, _ in self.block_specs()}
+
+    @nn.compact
+    def __call__(self, x: jax.Array, timesteps: jax.Array | None, cond: jax.Array | None,
+                 film: dict[str, FiLMParts] | None = None) -> jax.Array:
+        """Denoise ``x`` ``(B, M*L_c, A)`` at ``timesteps`` ``(B,)`` or ``()`` given ``cond`` ``(B, M, Dc)``.
+
+        ``film``: ``{block: FiLMParts}`` precomputed from ``film_steps`` (one step's row) and ``film_condition``;
+        when given, ``timesteps`` and ``cond`` are not used (pass None) and no step MLP or FiLM matmul runs.
+        """
+        if film is None:
+            self._check(x, cond)
+        elif x.ndim != 3 or x.shape[1] != self.num_freqs * self.chunk_len:
+            raise ValueError(f"x: expected shape (B, M*L_c={self.num_freqs * self.chunk_len}, A), got {x.shape}")
+        b, _, a = x.shape
+        if film is None:
+            d = self.step_embed_dim
+            t = jnp.broadcast_to(jnp.asarray(timesteps), (b,))
+            step = SinusoidalPosEmb(d)(t)
+            step = nn.Dense(4 * d, name="step_dense0")(step)
+            step = nn.Dense(d, name="step_dense1")(mish(step))  # (B, d)
+            film_in = FiLMInput(step, self._film_cond(cond))
+            films = {name: film_in for name, _, _ in self.block_specs()}
+        else:
+            films = film
+        blocks = {name: ConditionalResidualBlock1D(ch, self.kernel_size, self.n_groups, fuse, self.num_freqs,
+                                                   self.fusion_heads, name=name)
+                  for name, ch, fuse in self.block_specs()}
+
+        def res(name, h):
+            return blocks[name](h, films[name])
 
         levels = len(self.down_dims)
         skips = []
         for i, ch in enumerate(self.down_dims):
-            fuse = self.uses_fusion and i == 0
-            x = res(ch, f"down{i}_res0", fuse)(x, film_cond)
-            x = res(ch, f"down{i}_res1", fuse)(x, film_cond)
+            x = res(f"down{i}_res0", x)
+            x = res(f"down{i}_res1", x)
             skips.append(x)
             if i < levels - 1:
                 x = nn.Conv(ch, (3,), strides=2, padding=1, name=f"down{i}_downsample")(x)
 
-        mid = self.down_dims[-1]
-        x = res(mid, "mid_res0")(x, film_cond)
-        x = res(mid, "mid_res1")(x, film_cond)
+        x = res("mid_res0", x)
+        x = res("mid_res1", x)
 
         for j, ch in enumerate(reversed(self.down_dims[:-1])):
             x = jnp.concatenate([x, skips.pop()], axis=-1)
-            x = res(ch, f"up{j}_res0")(x, film_cond)
-            x = res(ch, f"up{j}_res1")(x, film_cond)
+            x = res(f"up{j}_res0", x)
+            x = res(f"up{j}_res1", x)
             x = nn.ConvTranspose(ch, (4,), strides=(2,), padding=((2, 2),), name=f"up{j}_upsample")(x)
 
         x = Conv1dBlock(self.down_dims[0], self.kernel_size, self.n_groups, name="final_block")(x)

@@ -1,0 +1,247 @@
+"""Shared pieces of the benchmark scripts: benchmark policies, timing, memory, FLOPs, machine peak, JSON output.
+
+Every benchmark prints a table and writes ``benchmarks/results/<name>_<device>.json`` (``device`` = ``cpu`` /
+``gpu`` / ``tpu``, from ``jax.default_backend()``). Latencies are wall-clock seconds of calls that end in
+``jax.block_until_ready``; on a shared machine compare ratios taken in one run, not absolute numbers across runs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import threading
+import time
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hipolicy_jax.config import PolicyConfig, replace
+from hipolicy_jax.data.normalizer import Normalizer
+from hipolicy_jax.models.policy_net import PolicyNet, init_policy_params, param_count
+
+RESULTS_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
+
+STATE_DIM = 10  # synthetic proprioceptive state size (D)
+ACTION_DIM = 4  # synthetic action size (A): end-effector xyz + gripper, as the MJX tasks
+
+# Per benchmark size: config overrides (dotted keys of PolicyConfig). 'paper' is the paper's U-Net and the
+# Diffusion Policy / DP3 encoders at their default widths; 'cpu' the CPU-sized U-Net with a narrower ResNet;
+# 'tiny' is for the smoke tests only.
+SIZES: dict[str, dict[str, Any]] = {
+    "paper": {"model.size": "paper"},
+    "cpu": {"model.size": "cpu", "encoder.image_channels": (16, 32, 64, 128)},
+    "tiny": {"model.size": "tiny", "model.fusion_heads": 2, "encoder.state_hidden": (16,), "encoder.state_out": 8,
+             "encoder.image_size": 32, "encoder.crop_size": 28, "encoder.image_channels": (8, 16),
+             "encoder.num_keypoints": 4, "encoder.image_out": 8, "encoder.num_points": 64, "encoder.point_out": 8},
+}
+
+
+def device_kind() -> str:
+    """``cpu``, ``gpu`` or ``tpu``: the default backend, used in result file names."""
+    return jax.default_backend()
+
+
+def device_description() -> str:
+    """Human-readable description of the default device, e.g. ``cpu (2 cores)`` or ``NVIDIA H100``."""
+    dev = jax.devices()[0]
+    if dev.platform == "cpu":
+        return f"cpu ({os.cpu_count()} cores)"
+    return getattr(dev, "device_kind", dev.platform)
+
+
+def bench_config(size: str, obs: str) -> PolicyConfig:
+    """The benchmark ``PolicyConfig`` of one size (``SIZES``) and observation type (state | image | pointcloud)."""
+    if size not in SIZES:
+        raise ValueError(f"size: must be one of {sorted(SIZES)}, got {size!r}")
+    return replace(PolicyConfig(), **{"encoder.obs_type": obs, **SIZES[size]})
+
+
+class BenchPolicy(NamedTuple):
+    """An initialised (untrained) policy for benchmarks: config, network, variables, normaliser and one raw
+    observation window ``{key: (1, M, L_h, ...)}`` plus the matching random batch maker."""
+
+    cfg: PolicyConfig
+    net: PolicyNet
+    params: Any
+    normalizer: Normalizer
+    obs: dict[str, jax.Array]
+
+
+def example_obs(cfg: PolicyConfig, batch: int, key: jax.Array) -> dict[str, jax.Array]:
+    """Random raw observation windows ``{key: (batch, M, L_h, ...)}`` for ``cfg.encoder.obs_type``.
+
+    state ``(.., STATE_DIM)``; image ``(.., S, S, 3)`` in [-1, 1]; point cloud ``(.., P, point_dims)``.
+    """
+    m, lh, e = cfg.chunk.num_freqs, cfg.chunk.obs_horizon, cfg.encoder
+    k1, k2 = jax.random.split(key)
+    obs = {"state": jax.random.uniform(k1, (batch, m, lh, STATE_DIM))}
+    if e.obs_type == "image":
+        obs["image"] = jax.random.uniform(k2, (batch, m, lh, e.image_size, e.image_size, 3), minval=-1.0, maxval=1.0)
+    elif e.obs_type == "pointcloud":
+        obs["point_cloud"] = jax.random.normal(k2, (batch, m, lh, e.num_points, e.point_dims))
+    return obs
+
+
+def make_bench_policy(size: str, obs_type: str, seed: int = 0, state_dim: int = STATE_DIM,
+                      action_dim: int = ACTION_DIM) -> BenchPolicy:
+    """Initialise ``PolicyNet`` for ``bench_config(size, obs_type)`` with a normaliser fitted on uniform [0, 1) data
+    of ``state_dim`` / ``action_dim`` features (so raw observations in [0, 1) map to [-1, 1))."""
+    cfg = bench_config(size, obs_type)
+    obs = example_obs(cfg, 1, jax.random.key(seed))
+    if state_dim != STATE_DIM:
+        obs["state"] = jax.random.uniform(jax.random.key(seed), obs["state"].shape[:-1] + (state_dim,))
+    params = init_policy_params(cfg, action_dim, obs, jax.random.key(seed))
+    rng = np.random.default_rng(seed)
+    normalizer = Normalizer.fit({"state": rng.random((256, state_dim), np.float32),
+                                 "action": rng.random((256, action_dim), np.float32)})
+    return BenchPolicy(cfg, PolicyNet(cfg, action_dim), params, normalizer, obs)
+
+
+def timed_calls(fn: Callable[[int], Any], repeats: int, budget_s: float | None = None, warmup: int = 1,
+                min_calls: int = 2) -> tuple[list[float], float]:
+    """Time ``fn(i)`` (its result is ``block_until_ready``-ed) after ``warmup`` untimed calls.
+
+    Runs ``repeats`` timed calls, or stops early once ``budget_s`` seconds are spent (after ``min_calls``).
+    Returns (per-call seconds, seconds of the first warm-up call, i.e. compile + run when not yet compiled).
+    """
+    first = math.nan
+    for i in range(warmup):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(-1 - i))
+        if i == 0:
+            first = time.perf_counter() - t0
+    times: list[float] = []
+    start = time.perf_counter()
+    for i in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(i))
+        times.append(time.perf_counter() - t0)
+        if budget_s is not None and len(times) >= min_calls and time.perf_counter() - start > budget_s:
+            break
+    return times, first
+
+
+def latency_stats(times: list[float]) -> dict[str, float]:
+    """median / p90 / min (seconds) and the number of calls of a list of call times."""
+    a = np.asarray(times, np.float64)
+    return {"median_s": float(np.median(a)), "p90_s": float(np.percentile(a, 90)), "min_s": float(a.min()),
+            "calls": int(a.size)}
+
+
+class MemoryMonitor(contextlib.AbstractContextManager):
+    """Peak memory inside a ``with`` block: device ``peak_bytes_in_use`` on an accelerator, process RSS on a CPU.
+
+    On a CPU a thread polls the RSS every ``interval_s``; ``peak_mb`` is the largest RSS seen and ``delta_mb`` its
+    excess over the RSS at entry. On an accelerator ``peak_mb`` is the allocator's peak so far (it never resets,
+    so it is meaningful when sizes grow monotonically) and ``delta_mb`` its excess over the bytes in use at entry.
+    """
+
+    def __init__(self, interval_s: float = 0.005):
+        self.interval_s = interval_s
+        self.peak_mb = math.nan
+        self.delta_mb = math.nan
+        self.kind = "rss" if device_kind() == "cpu" else "device"
+
+    def _rss(self) -> int:
+        import psutil
+
+        return psutil.Process().memory_info().rss
+
+    def __enter__(self):
+        if self.kind == "device":
+            stats = jax.devices()[0].memory_stats() or {}
+            self._base = stats.get("bytes_in_use", 0)
+            return self
+        self._base = self._peak = self._rss()
+        self._stop = threading.Event()
+
+        def poll():
+            while not self._stop.is_set():
+                self._peak = max(self._peak, self._rss())
+                self._stop.wait(self.interval_s)
+
+        self._thread = threading.Thread(target=poll, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        if self.kind == "device":
+            stats = jax.devices()[0].memory_stats() or {}
+            peak = stats.get("peak_bytes_in_use", math.nan)
+        else:
+            self._stop.set()
+            self._thread.join()
+            peak = max(self._peak, self._rss())
+        self.peak_mb = peak / 2**20
+        self.delta_mb = (peak - self._base) / 2**20
+        return False
+
+
+def compiled_flops(fn: Callable, *args) -> float:
+    """FLOPs of one call of ``jax.jit(fn)(*args)`` from XLA's cost analysis (NaN if unavailable).
+
+    XLA counts a ``while`` / ``scan`` body once, so cost loop bodies by compiling the body itself.
+    """
+    analysis = jax.jit(fn).lower(*args).compile().cost_analysis()
+    if isinstance(analysis, (list, tuple)):
+        analysis = analysis[0] if analysis else {}
+    return float((analysis or {}).get("flops", math.nan))
+
+
+def matmul_peak_gflops(n: int | None = None, repeats: int = 10, dtype=jnp.float32) -> dict[str, float]:
+    """Estimated machine peak: the best GFLOP/s of an ``n x n`` matmul (default 2048 on a CPU, 8192 otherwise)."""
+    n = n or (2048 if device_kind() == "cpu" else 8192)
+    a = jax.random.normal(jax.random.key(0), (n, n), dtype)
+    b = jax.random.normal(jax.random.key(1), (n, n), dtype)
+    mm = jax.jit(jnp.matmul)
+    times, _ = timed_calls(lambda i: mm(a, b), repeats, warmup=2)
+    return {"n": n, "dtype": jnp.dtype(dtype).name, "gflops": 2.0 * n**3 / min(times) / 1e9,
+            "median_gflops": 2.0 * n**3 / float(np.median(times)) / 1e9}
+
+
+def write_results(name: str, payload: dict, out_dir: str | None = None) -> str:
+    """Write ``payload`` (plus device metadata) to ``<out_dir>/<name>_<device>.json``; returns the path."""
+    out_dir = out_dir or RESULTS_DIR
+    os.makedirs(out_dir, exist_ok=True)
+    path = os.path.join(out_dir, f"{name}_{device_kind()}.json")
+    meta = {"benchmark": name, "device": device_kind(), "device_description": device_description(),
+            "jax_version": jax.__version__, "time": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    with open(path, "w") as f:
+        json.dump({**meta, **payload}, f, indent=1, default=_json_default)
+        f.write("\n")
+    return path
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def markdown_table(headers: list[str], rows: list[list[Any]]) -> str:
+    """A GitHub markdown table; floats are printed with 4 significant digits."""
+    def fmt(v):
+        if isinstance(v, float):
+            return "nan" if math.isnan(v) else f"{v:.4g}"
+        return str(v)
+
+    lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
+    lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def precision_context(precision: str | None):
+    """``jax.default_matmul_precision(precision)`` (e.g. 'bfloat16' for bf16 matmuls on a GPU), or a no-op."""
+    return jax.default_matmul_precision(precision) if precision and precision != "default" else contextlib.nullcontext()
+
+
+__all__ = ["ACTION_DIM", "BenchPolicy", "MemoryMonitor", "RESULTS_DIR", "SIZES", "STATE_DIM", "bench_config",
+           "compiled_flops", "device_description", "device_kind", "example_obs", "latency_stats",
+           "make_bench_policy", "markdown_table", "matmul_peak_gflops", "param_count", "precision_context",
+           "timed_calls", "write_results"]
