@@ -7,10 +7,11 @@ The flow every script follows: demos (collected once, cached as a zarr ReplayBuf
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import os
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import jax
 import numpy as np
@@ -25,6 +26,13 @@ from hipolicy_jax.policy import PolicyArgs, calibrate_thresholds, make_policy_fn
 CPU_POLICY = PolicyConfig(chunk=ChunkConfig(), model=ModelConfig(size="cpu"), diffusion=DiffusionConfig(),
                           sampling=SamplingConfig(num_samples=16))
 CPU_TRAIN = TrainConfig(batch_size=64, num_steps=3000, lr=3e-4, warmup_steps=200, log_every=50, ckpt_every=500)
+
+# Which tasks need tight end-effector tolerances (the paper's precise / non-precise split); the one place it lives.
+TASK_PRECISE: dict[str, bool] = {"press_button": True, "stack_cubes": True, "latch_door": False, "pick_place": False}
+
+# Salt of the evaluation key: rollouts use fold_in(key(seed), EVAL_SALT), so their initial states never coincide
+# with those of the demos collected from key(seed).
+EVAL_SALT = 0x5EED
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,8 +103,8 @@ def evaluate_policy(net, params, normalizer, cfg: PolicyConfig, action_dim: int,
     policy_fn = make_policy_fn(net, cfg, action_dim, num_samples=opts.num_samples, num_steps=opts.num_steps,
                                sampler=opts.sampler)
     args = PolicyArgs(params, normalizer, None if th is None else np.asarray(th, np.float32))
-    return evaluate(policy_fn, task, opts.episodes, key, history_len=cfg.chunk.obs_span,
-                    chunk_len=cfg.chunk.chunk_len, policy_args=args)
+    return evaluate(policy_fn, policy_env(task, policy_obs_keys(cfg.encoder)), opts.episodes, key,
+                    history_len=cfg.chunk.obs_span, chunk_len=cfg.chunk.chunk_len, policy_args=args)
 
 
 def eval_summary(result) -> dict:
@@ -116,3 +124,95 @@ def eval_summary(result) -> dict:
 def write_json(path: str, obj) -> None:
     with open(path, "w") as f:
         json.dump(obj, f, indent=2, default=float)
+
+
+@functools.lru_cache(maxsize=16)
+def policy_env(task: str, obs_keys: tuple[str, ...] = ("state",)):
+    """The task's env computing ``obs_keys`` (one instance per setting, so compiled rollouts stay cached)."""
+    from hipolicy_jax import envs
+
+    return envs.make(task, obs_keys=tuple(obs_keys))
+
+
+def eval_key(seed: int) -> jax.Array:
+    """Evaluation PRNG key of a seed, disjoint from the demo-collection key ``key(seed)``."""
+    return jax.random.fold_in(jax.random.key(seed), EVAL_SALT)
+
+
+def guidance_thresholds(thresholds, num_freqs: int, entropy_guided: bool = True) -> np.ndarray:
+    """(M+1,) float32 thresholds to trace into a rollout. Without entropy guidance every finite entropy selects the
+    highest frequency: (-inf, +inf, ..., +inf). Passing thresholds as an array either way keeps one compiled
+    rollout for both evaluations (``None`` would change the traced structure and recompile)."""
+    if not entropy_guided or thresholds is None or num_freqs == 1:
+        return np.array([-np.inf] + [np.inf] * num_freqs, np.float32)
+    th = np.asarray(thresholds, np.float32)
+    if th.shape != (num_freqs + 1,):
+        raise ValueError(f"thresholds: need M+1={num_freqs + 1} values for M={num_freqs}, got {th.tolist()}")
+    return th
+
+
+def evaluate_policy_recorded(net, params, normalizer, cfg: PolicyConfig, action_dim: int, task: str,
+                             opts: EvalOptions, key, thresholds=None):
+    """``evaluate_policy`` that also returns the rollout's ``envs.rollout.Recording`` (qpos for videos), from the
+    same compiled rollout. Thresholds go through ``guidance_thresholds(thresholds, M, opts.entropy_guided)``."""
+    from hipolicy_jax.envs import rollout
+
+    policy_fn = make_policy_fn(net, cfg, action_dim, num_samples=opts.num_samples, num_steps=opts.num_steps,
+                               sampler=opts.sampler)
+    th = guidance_thresholds(thresholds, cfg.chunk.num_freqs, opts.entropy_guided)
+    stateful, init_fn = rollout.stateless(policy_fn, with_args=True)
+    return rollout.rollout_episodes(stateful, init_fn, policy_env(task, policy_obs_keys(cfg.encoder)),
+                                    opts.episodes, key, history_len=cfg.chunk.obs_span,
+                                    chunk_len=cfg.chunk.chunk_len, policy_args=PolicyArgs(params, normalizer, th))
+
+
+class Run(NamedTuple):
+    """A trained run: its output dir (summary, calibration, eval/), checkpoint dir, loaded policy and task."""
+
+    run_dir: str
+    ckpt_dir: str
+    policy: object  # hipolicy_jax.checkpoint.LoadedPolicy
+    task: str
+
+
+def resolve_run(path: str) -> tuple[str, str]:
+    """(run_dir, checkpoint_dir) from a train output dir (holding ``checkpoints/``) or the checkpoints dir itself."""
+    path = os.path.abspath(path)
+    if os.path.isdir(os.path.join(path, "checkpoints")):
+        return path, os.path.join(path, "checkpoints")
+    if os.path.isdir(path) and any(d.isdigit() for d in os.listdir(path)):
+        return os.path.dirname(path), path
+    raise FileNotFoundError(f"checkpoint: {path} is neither a run dir holding checkpoints/ nor a checkpoints dir")
+
+
+def load_run(path: str, step: int | None = None) -> Run:
+    """Load the (EMA) policy of a run dir or checkpoints dir; the task comes from the checkpoint's meta."""
+    from hipolicy_jax.checkpoint import load_policy
+
+    run_dir, ckpt_dir = resolve_run(path)
+    loaded = load_policy(ckpt_dir, step)
+    # orbax restores device-committed arrays; jit keys its cache on commitment, so an uncommitted copy lets the
+    # evaluation reuse a rollout compiled for the training state (same process) instead of compiling it again
+    uncommitted = functools.partial(jax.tree.map, lambda x: jax.device_put(np.asarray(x)))
+    loaded = loaded._replace(params=uncommitted(loaded.params), normalizer=uncommitted(loaded.normalizer))
+    if "task" not in loaded.meta:
+        raise ValueError(f"{ckpt_dir}: checkpoint meta lacks 'task' (not written by experiments.train?)")
+    return Run(run_dir, ckpt_dir, loaded, str(loaded.meta["task"]))
+
+
+def run_action_dim(run: Run) -> int:
+    return int(run.policy.meta["action_dim"])
+
+
+def read_calibration(run_dir: str) -> dict | None:
+    """The run's ``calibration.json`` (None when absent)."""
+    path = os.path.join(run_dir, "calibration.json")
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        return json.load(f)
+
+
+def read_json(path: str):
+    with open(path) as f:
+        return json.load(f)

@@ -8,6 +8,7 @@ import sys
 import time
 
 import numpy as np
+import pytest
 
 from test_training import bimodal_buffer, tiny_cfg
 
@@ -90,3 +91,17 @@ def test_partial_write_and_corrupted_checkpoint_are_reported_and_skipped(tmp_pat
     assert "step 8 is unreadable" in printed and (ckpts / "corrupt_8").is_dir()
     assert res.start_step == 4
     np.testing.assert_allclose(res.losses, full.losses[4:], rtol=1e-6)
+
+
+@pytest.mark.slow
+def test_evaluation_shards_episodes_across_devices():
+    worker = os.path.join(os.path.dirname(__file__), "workers", "eval_worker.py")
+    outs = []
+    for devices in (4, None):
+        proc = subprocess.run([sys.executable, worker], env=_env(devices), capture_output=True, text=True,
+                              timeout=600)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        outs.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    four, one = outs
+    assert four["devices"] == 4 and "NamedSharding" in four["sharding"] and "'data'" in four["sharding"]
+    assert four["steps"] == one["steps"] and four["success"] == one["success"]

@@ -20,6 +20,10 @@ reuses the compiled rollout instead of recompiling (20–50 s a task on a CPU).
 
 All episodes run in one jitted rollout: ``lax.scan`` over replans, an inner ``lax.scan`` over the chunk's steps.
 An episode is frozen (env state, history and policy state masked) once it is done or reaches the step limit.
+
+The same episode loop (``make_episode_fn``) also records what videos need: the joint positions of every control
+step (and optionally observations), as a ``Recording``. Batched rollouts always record qpos (E·T·nq floats, cheap),
+so one compiled rollout serves scoring (``evaluate``), traces and videos (``rollout_episodes``).
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ import jax
 import jax.numpy as jnp
 
 from hipolicy_jax import envs as envs_lib
+from hipolicy_jax import parallel
 from hipolicy_jax.envs.base import ExpertPlan, MjxEnv
 
 
@@ -60,6 +65,17 @@ class EvalResult(NamedTuple):
     entropy: jax.Array
     stride: jax.Array
     valid: jax.Array
+
+
+class Recording(NamedTuple):
+    """Per-step record of an episode (leading (E,) axis when batched): qpos (T+1, nq) from the reset on, frozen
+    after the episode ends; body_pos (n, 3) the episode's randomised body placements; obs {key: (T+1, ...)} for the
+    recorded observation keys (empty unless asked for). T = replans · chunk_len; entries past ``steps`` repeat
+    the final state."""
+
+    qpos: jax.Array
+    body_pos: jax.Array
+    obs: dict[str, jax.Array]
 
 
 PolicyFn = Callable[[dict[str, jax.Array], jax.Array], PolicyOutput]
@@ -93,16 +109,25 @@ def _resolve(task: str | MjxEnv) -> MjxEnv:
 
 
 def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *, history_len: int,
-                    chunk_len: int, max_steps: int | None = None) -> Callable[[jax.Array], tuple]:
+                    chunk_len: int, max_steps: int | None = None, record: bool = False,
+                    record_obs: tuple[str, ...] = ()) -> Callable[[jax.Array, Any], tuple]:
     """The un-batched, un-jitted rollout of one episode: ``episode(key, policy_args) -> (final State, entropy (R,),
-    stride (R,), valid (R,))``. ``evaluate_stateful`` vmaps and jits it."""
+    stride (R,), valid (R,))``, plus a ``Recording`` (qpos and the ``record_obs`` observations of every control
+    step) as a fifth element when ``record``. ``compiled_rollout`` vmaps and jits it; ``video`` jits it alone."""
     if history_len < 1 or chunk_len < 1:
         raise ValueError(f"history_len and chunk_len must be >= 1, got {history_len}, {chunk_len}")
+    missing = [k for k in record_obs if k not in env.obs_keys]
+    if missing:
+        raise ValueError(f"record_obs: {missing} not among the env's observations {env.obs_keys}")
     limit = int(max_steps if max_steps is not None else env.max_steps)
     num_replans = math.ceil(limit / chunk_len)
+    record_obs = tuple(record_obs)
 
     def finished(state):
         return state.done | (state.step >= limit)
+
+    def snapshot(state):
+        return state.data.qpos, {k: state.obs[k] for k in record_obs}
 
     def episode(key, policy_args):
         k_reset, k_init, k_policy = jax.random.split(key, 3)
@@ -121,15 +146,22 @@ def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *
                 new_state = env.step(state, action)
                 new_history = push_history(history, new_state.obs)
                 keep = finished(state)
-                return (_select(keep, state, new_state), _select(keep, history, new_history)), None
+                state, history = _select(keep, state, new_state), _select(keep, history, new_history)
+                return (state, history), (snapshot(state) if record else None)
 
-            (state, history), _ = jax.lax.scan(act, (state, history), out.actions)
-            trace = (jnp.asarray(out.entropy, jnp.float32), jnp.asarray(out.stride, jnp.int32), valid)
+            (state, history), steps = jax.lax.scan(act, (state, history), out.actions)
+            trace = (jnp.asarray(out.entropy, jnp.float32), jnp.asarray(out.stride, jnp.int32), valid, steps)
             return (state, history, pstate), trace
 
-        (state, _, _), (entropy, stride, valid) = jax.lax.scan(
+        first = snapshot(state)
+        body_pos = state.info["body_pos"]
+        (state, _, _), (entropy, stride, valid, steps) = jax.lax.scan(
             replan, (state, history, pstate), jnp.arange(num_replans))
-        return state, entropy, stride, valid
+        if not record:
+            return state, entropy, stride, valid
+        # (R, L_c, ...) per-step snapshots after each step, preceded by the reset's → (R·L_c + 1, ...)
+        qpos, obs = jax.tree.map(lambda f, x: jnp.concatenate([f[None], x.reshape(-1, *x.shape[2:])]), first, steps)
+        return state, entropy, stride, valid, Recording(qpos=qpos, body_pos=body_pos, obs=obs)
 
     return episode
 
@@ -151,27 +183,49 @@ def check_policy_shape(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn
 @functools.lru_cache(maxsize=32)
 def compiled_rollout(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, history_len: int, chunk_len: int,
                      max_steps: int | None):
-    """``jit(vmap(episode))(keys (E,), policy_args)``, cached per (env, policy_fn, init_fn, shapes)."""
+    """``jit(vmap(episode))(keys (E,), policy_args) -> (State, entropy, stride, valid, Recording)`` (qpos recorded),
+    cached per (env, policy_fn, init_fn, shapes)."""
     episode = make_episode_fn(env, policy_fn, init_fn, history_len=history_len, chunk_len=chunk_len,
-                              max_steps=max_steps)
+                              max_steps=max_steps, record=True)
     return jax.jit(jax.vmap(episode, in_axes=(0, None)))
+
+
+def rollout_episodes(policy_fn: StatefulPolicyFn, init_fn: InitFn, task: str | MjxEnv, num_episodes: int,
+                     key: jax.Array, *, history_len: int, chunk_len: int, max_steps: int | None = None,
+                     policy_args=()) -> tuple[EvalResult, Recording]:
+    """``evaluate_stateful`` that also returns the batched ``Recording`` (qpos (E, T+1, nq), body_pos (E, n, 3)) of
+    the same compiled rollout, e.g. to render a video of an evaluated episode without another compile.
+
+    With several devices the episodes are sharded across them (when their count divides ``num_episodes``; otherwise
+    everything runs on one device) and ``policy_args`` is replicated.
+    """
+    env = _resolve(task)
+    check_policy_shape(env, policy_fn, init_fn, policy_args, history_len=history_len, chunk_len=chunk_len)
+    rollout = compiled_rollout(env, policy_fn, init_fn, history_len, chunk_len, max_steps)
+    keys = jax.random.split(key, num_episodes)
+    mesh = parallel.make_mesh()
+    if mesh is not None and num_episodes % mesh.size == 0:
+        keys = parallel.shard_batch(keys, mesh)
+        policy_args = parallel.replicate(policy_args, mesh)
+    else:
+        keys = jax.device_put(keys)
+    state, entropy, stride, valid, recording = rollout(keys, policy_args)
+    success = state.success
+    steps = state.step
+    n_succ = success.sum()
+    mean_steps = jnp.where(n_succ > 0, jnp.sum(jnp.where(success, steps, 0)) / jnp.maximum(n_succ, 1), jnp.nan)
+    result = EvalResult(success_rate=success.mean(dtype=jnp.float32),
+                        mean_steps_success=mean_steps.astype(jnp.float32), success=success, steps=steps,
+                        entropy=entropy, stride=stride, valid=valid)
+    return result, recording
 
 
 def evaluate_stateful(policy_fn: StatefulPolicyFn, init_fn: InitFn, task: str | MjxEnv, num_episodes: int,
                       key: jax.Array, *, history_len: int, chunk_len: int, max_steps: int | None = None,
                       policy_args=()) -> EvalResult:
     """``evaluate`` for a policy that carries its own state (see the module docstring)."""
-    env = _resolve(task)
-    check_policy_shape(env, policy_fn, init_fn, policy_args, history_len=history_len, chunk_len=chunk_len)
-    rollout = compiled_rollout(env, policy_fn, init_fn, history_len, chunk_len, max_steps)
-    keys = jax.device_put(jax.random.split(key, num_episodes))
-    state, entropy, stride, valid = rollout(keys, policy_args)
-    success = state.success
-    steps = state.step
-    n_succ = success.sum()
-    mean_steps = jnp.where(n_succ > 0, jnp.sum(jnp.where(success, steps, 0)) / jnp.maximum(n_succ, 1), jnp.nan)
-    return EvalResult(success_rate=success.mean(dtype=jnp.float32), mean_steps_success=mean_steps.astype(jnp.float32),
-                      success=success, steps=steps, entropy=entropy, stride=stride, valid=valid)
+    return rollout_episodes(policy_fn, init_fn, task, num_episodes, key, history_len=history_len,
+                            chunk_len=chunk_len, max_steps=max_steps, policy_args=policy_args)[0]
 
 
 def _no_state(obs, key):
@@ -186,6 +240,13 @@ def _as_stateful(policy_fn: Callable, with_args: bool) -> StatefulPolicyFn:
         return out, pstate
 
     return stateful
+
+
+def stateless(policy_fn: Callable, with_args: bool = True) -> tuple[StatefulPolicyFn, InitFn]:
+    """``(policy_fn, init_fn)`` for ``evaluate_stateful`` / ``rollout_episodes`` / ``make_episode_fn`` from a
+    stateless ``policy_fn(obs_history, key[, policy_args])``; the same objects as ``evaluate`` uses, so they share
+    its compiled rollouts."""
+    return _as_stateful(policy_fn, with_args), _no_state
 
 
 def evaluate(policy_fn: Callable, task: str | MjxEnv, num_episodes: int, key: jax.Array, *, history_len: int,

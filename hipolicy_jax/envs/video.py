@@ -1,8 +1,10 @@
 """Videos of rollouts for humans (gif, or mp4 when imageio-ffmpeg is installed).
 
 Frames come from MuJoCo's offscreen renderer when an OpenGL backend works (``MUJOCO_GL=egl`` or ``osmesa``),
-otherwise from the jitted ray-cast camera (``camera.py``). The rollout itself is one jitted scan that records the
-joint positions of every control step; frames are rendered afterwards on the host.
+otherwise from the jitted ray-cast camera (``camera.py``). The rollout is the evaluation's episode loop
+(``rollout.make_episode_fn`` with recording on), which records the joint positions of every control step; frames
+are rendered afterwards on the host. ``trajectory_from_rollout`` takes an episode of a batched evaluation
+(``rollout.rollout_episodes``) instead, so a video of an evaluated policy needs no second compile.
 
     python -m hipolicy_jax.envs.video --task latch_door --output door.gif
     python -m hipolicy_jax.envs.video --task press_button --stride 2 --output press_x2.gif
@@ -11,7 +13,6 @@ joint positions of every control step; frames are rendered afterwards on the hos
 from __future__ import annotations
 
 import argparse
-import math
 import os
 from typing import NamedTuple
 
@@ -29,53 +30,45 @@ from hipolicy_jax.envs.base import MjxEnv
 
 class Trajectory(NamedTuple):
     """One recorded episode: qpos (T+1, nq) from the reset on, body_pos (n, 3) the episode's randomised body
-    placements, steps () control steps executed, success () bool."""
+    placements, steps () control steps executed, success () bool; optionally the policy's per-replan entropy (R,)
+    and stride (R,) with its chunk_len (to annotate frames, see ``annotate_frames``)."""
 
     qpos: np.ndarray
     body_pos: np.ndarray
     steps: int
     success: bool
+    entropy: np.ndarray | None = None
+    stride: np.ndarray | None = None
+    chunk_len: int = 8
+
+
+def trajectory_from_rollout(result: rollout.EvalResult, recording: rollout.Recording, episode: int,
+                            chunk_len: int) -> Trajectory:
+    """Episode ``episode`` of a batched ``rollout.rollout_episodes`` result as a ``Trajectory``."""
+    result, recording = jax.device_get((result, recording))
+    steps = int(result.steps[episode])
+    return Trajectory(qpos=np.asarray(recording.qpos[episode, :steps + 1]),
+                      body_pos=np.asarray(recording.body_pos[episode]), steps=steps,
+                      success=bool(result.success[episode]), entropy=np.asarray(result.entropy[episode]),
+                      stride=np.asarray(result.stride[episode]), chunk_len=int(chunk_len))
 
 
 def record_trajectory(env: MjxEnv, key: jax.Array, policy_fn=None, init_fn=None, *, chunk_len: int = 8,
                       history_len: int = 1, max_steps: int | None = None, policy_args=()) -> Trajectory:
-    """Run one episode of a stateful policy (default: the scripted expert at stride 1) and record its qpos."""
+    """Run one episode of a stateful policy (default: the scripted expert at stride 1) and record its qpos.
+
+    The episode is ``rollout.make_episode_fn`` (the evaluation loop) with recording on, jitted for one episode.
+    For a stateless ``policy_fn(obs_history, key, policy_args)`` pass ``*rollout.stateless(policy_fn)``.
+    """
     if policy_fn is None:
         policy_fn, init_fn = rollout.expert_policy(env, chunk_len)
-    limit = int(max_steps or env.max_steps)
-    num_replans = math.ceil(limit / chunk_len)
-
-    def run(key):
-        k_reset, k_init, k_pol = jax.random.split(key, 3)
-        state = env.reset(k_reset)
-        history = rollout.init_history(state.obs, history_len)
-        pstate = init_fn(state.obs, k_init)
-
-        def replan(carry, r):
-            state, history, pstate = carry
-            out, pstate = policy_fn(history, jax.random.fold_in(k_pol, r), pstate, policy_args)
-
-            def act(inner, action):
-                state, history = inner
-                stop = state.done | (state.step >= limit)
-                new = env.step(state, action)
-                new_hist = rollout.push_history(history, new.obs)
-                state = jax.tree.map(lambda a, b: jnp.where(stop, a, b), state, new)
-                history = jax.tree.map(lambda a, b: jnp.where(stop, a, b), history, new_hist)
-                return (state, history), state.data.qpos
-
-            (state, history), qpos = jax.lax.scan(act, (state, history), out.actions)
-            return (state, history, pstate), qpos
-
-        qpos0 = state.data.qpos
-        (state, _, _), qpos = jax.lax.scan(replan, (state, history, pstate), jnp.arange(num_replans))
-        qpos = jnp.concatenate([qpos0[None], qpos.reshape(-1, qpos0.shape[0])])
-        return qpos, state.info["body_pos"], state.step, state.success
-
-    qpos, body_pos, steps, success = jax.device_get(jax.jit(run)(key))
-    steps = int(steps)
-    return Trajectory(qpos=np.asarray(qpos[:steps + 1]), body_pos=np.asarray(body_pos), steps=steps,
-                      success=bool(success))
+    episode = rollout.make_episode_fn(env, policy_fn, init_fn, history_len=history_len, chunk_len=chunk_len,
+                                      max_steps=max_steps, record=True)
+    state, entropy, stride, valid, rec = jax.device_get(jax.jit(episode)(key, policy_args))
+    steps = int(state.step)
+    return Trajectory(qpos=np.asarray(rec.qpos[:steps + 1]), body_pos=np.asarray(rec.body_pos), steps=steps,
+                      success=bool(state.success), entropy=np.asarray(entropy), stride=np.asarray(stride),
+                      chunk_len=int(chunk_len))
 
 
 def opengl_available() -> bool:
@@ -129,6 +122,41 @@ def render_frames(env: MjxEnv, traj: Trajectory, *, height: int = 240, width: in
         return cam.observe(model, data, jax.random.PRNGKey(0), ("image",))["image"]
 
     return np.stack([np.asarray(frame(jnp.asarray(q))) for q in traj.qpos])
+
+
+# One colour per stride (index = stride - 1, cycling), shared by frame annotations and entropy plots.
+STRIDE_COLORS: tuple[tuple[int, int, int], ...] = ((31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40),
+                                                  (148, 103, 189), (140, 86, 75))
+
+
+def stride_color(stride: int) -> tuple[int, int, int]:
+    """RGB (0-255) colour of an execution stride."""
+    return STRIDE_COLORS[(int(stride) - 1) % len(STRIDE_COLORS)]
+
+
+def annotate_frames(frames: np.ndarray, traj: Trajectory) -> np.ndarray:
+    """Frames with a top banner naming the control step and, when ``traj`` has them, the stride (banner colour)
+    and entropy of the chunk being executed. Frame i shows the state after step i, driven by replan (i-1)//L_c."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    h = frames.shape[1]
+    band = max(10, h // 12)
+    font = ImageFont.load_default(size=max(8, band - 3))
+    out = []
+    for i, frame in enumerate(frames):
+        img = Image.fromarray(np.asarray(frame))
+        draw = ImageDraw.Draw(img)
+        text, color = f"t={i}", (40, 40, 40)
+        if traj.stride is not None and len(traj.stride):
+            r = min(max(i - 1, 0) // traj.chunk_len, len(traj.stride) - 1)
+            color = stride_color(traj.stride[r])
+            text += f"  stride {int(traj.stride[r])}"
+            if traj.entropy is not None and np.isfinite(traj.entropy[r]):
+                text += f"  H={float(traj.entropy[r]):.2f}"
+        draw.rectangle((0, 0, img.width, band), fill=color)
+        draw.text((3, 1), text, fill=(255, 255, 255), font=font)
+        out.append(np.asarray(img))
+    return np.stack(out)
 
 
 def save_video(frames: np.ndarray, path: str, fps: float) -> str:

@@ -1,0 +1,252 @@
+"""Experiment entry points on one tiny trained run: evaluate, calibrate, and the paper tables (parsing, the markdown
+writer on fake numbers, and one smoke ``paper entropy`` run reusing the trained run)."""
+
+import contextlib
+import json
+import math
+import os
+import shlex
+
+import imageio.v2 as imageio
+import jax
+import numpy as np
+import pytest
+import tyro
+
+from experiments import calibrate, evaluate, paper
+from experiments.train import main as train_main
+from hipolicy_jax.envs import rollout
+
+TASK = "press_button"
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """The smoke budget's HiPolicy run of press_button, seed 0, trained into a tmp dir (as ``paper`` lays it out)."""
+    root = tmp_path_factory.mktemp("paper")
+    args = paper.EntropyArgs(budget="smoke", tasks=(TASK,), seeds=(0,), runs=str(root / "runs"),
+                             results=str(root / "results"), data=str(root / "data"), progress=False)
+    targs = paper.train_args(args, TASK, "state", (), 0)
+    with xla_compiles() as compiled:
+        summary = train_main(targs)
+    assert summary["steps"] == paper.BUDGETS["smoke"].train.num_steps
+    assert "jit(episode)" in compiled  # the final evaluation compiled the batched rollout
+    return args, targs.out_dir()
+
+
+@contextlib.contextmanager
+def xla_compiles():
+    """Names of the functions XLA compiles inside the block."""
+    names = []
+
+    def listener(event, duration, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            names.append(str(kwargs.get("fun_name", "")))
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        yield names
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+
+
+def _load(path):
+    with open(path) as f:
+        return json.load(f)
+
+
+def _check_summary(s: dict, max_steps: int):
+    assert 0.0 <= s["success_rate"] <= 1.0
+    assert 1 <= s["mean_steps"] <= max_steps
+    assert math.isnan(s["mean_steps_success"]) or 1 <= s["mean_steps_success"] <= max_steps
+    fracs = [v for k, v in s.items() if k.startswith("stride") and k.endswith("_frac")]
+    assert all(0.0 <= f <= 1.0 for f in fracs) and math.isclose(sum(fracs), 1.0, rel_tol=1e-6)
+    assert len(s["success"]) == len(s["steps"]) and all(1 <= x <= max_steps for x in s["steps"])
+
+
+def test_evaluate_writes_json_trace_and_video(tiny):
+    _, run = tiny
+    opts = paper.BUDGETS["smoke"].eval
+    misses = rollout.compiled_rollout.cache_info().misses
+    with xla_compiles() as compiled:
+        report = evaluate.main(evaluate.EvaluateArgs(checkpoint=run, episodes=opts.episodes,
+                                                     num_samples=opts.num_samples, num_steps=opts.num_steps,
+                                                     video_height=48, video_width=64))
+    # both evaluations and the video reuse the rollout the training's final evaluation compiled
+    assert rollout.compiled_rollout.cache_info().misses == misses and "jit(episode)" not in compiled
+    out = os.path.join(run, "eval")
+    for name in ("eval.json", "entropy_trace.png", "rollout.gif"):
+        assert os.path.getsize(os.path.join(out, name)) > 0
+    saved = _load(os.path.join(out, "eval.json"))
+    assert saved["task"] == TASK and saved["episodes"] == opts.episodes
+    assert saved["thresholds"] == _load(os.path.join(run, "calibration.json"))["thresholds"]
+    assert saved["thresholds_source"] == "calibration.json"
+    max_steps = rollout._make(TASK).max_steps
+    for key in ("with_eg", "without_eg"):
+        _check_summary(saved[key], max_steps)
+    assert saved["without_eg"]["stride1_frac"] == 1.0  # w/o entropy guidance: always the highest frequency
+    assert report["steps_ratio"] > 0 and 0 <= saved["video_episode"] < opts.episodes
+    # the video is the recorded episode of the batched rollout: the reset frame plus one frame per step
+    frames = imageio.mimread(os.path.join(out, "rollout.gif"))
+    assert len(frames) == saved["with_eg"]["steps"][saved["video_episode"]] + 1
+
+
+def test_evaluate_checkpoints_dir_and_threshold_override(tiny, tmp_path):
+    _, run = tiny
+    opts = paper.BUDGETS["smoke"].eval
+    # inner thresholds above any entropy: entropy guidance picks stride 1 everywhere, like w/o EG
+    args = tyro.cli(evaluate.EvaluateArgs, args=[
+        "--checkpoint", os.path.join(run, "checkpoints"), "--episodes", str(opts.episodes), "--num-samples",
+        str(opts.num_samples), "--num-steps", str(opts.num_steps), "--thresholds", "1e6", "2e6", "--no-video",
+        "--out", str(tmp_path / "ev")])
+    report = evaluate.main(args)
+    assert report["thresholds"] == [-math.inf, 1e6, 2e6, math.inf] and report["thresholds_source"] == "--thresholds"
+    assert report["with_eg"]["stride1_frac"] == 1.0 and "video" not in report["files"]
+    assert report["with_eg"]["steps"] == report["without_eg"]["steps"]
+    assert (tmp_path / "ev" / "eval.json").exists() and (tmp_path / "ev" / "entropy_trace.png").exists()
+    with pytest.raises(ValueError, match="thresholds"):
+        evaluate.main(evaluate.EvaluateArgs(checkpoint=run, thresholds=(1.0,), video=False, out=str(tmp_path)))
+
+
+def test_calibrate_demos_reproduces_training_calibration(tiny, tmp_path, capsys):
+    _, run = tiny
+    opts = paper.BUDGETS["smoke"].eval
+    record = calibrate.main(calibrate.CalibrateArgs(checkpoint=run, num_samples=opts.num_samples,
+                                                    num_steps=opts.num_steps, calib_windows=opts.calib_windows,
+                                                    out=str(tmp_path / "calibration.json")))
+    saved = _load(tmp_path / "calibration.json")
+    trained = _load(os.path.join(run, "calibration.json"))
+    np.testing.assert_allclose(saved["thresholds"], trained["thresholds"], rtol=1e-6)
+    th = saved["thresholds"]
+    assert len(th) == 4 and th[0] == -math.inf and th[-1] == math.inf and th[1] < th[2]
+    assert saved["percentiles"] == [10.0, 70.0] and saved["source"] == "demos"
+    assert sum(saved["histogram"]["counts"]) == saved["num_windows"] == record["num_windows"] > 0
+    q = saved["entropy_quantiles"]
+    assert q["0"] <= th[1] <= th[2] <= q["100"]
+    assert (tmp_path / "calibration.png").stat().st_size > 0
+    assert "th1=" in capsys.readouterr().out
+
+
+def test_calibrate_rollouts(tiny, tmp_path):
+    _, run = tiny
+    opts = paper.BUDGETS["smoke"].eval
+    args = tyro.cli(calibrate.CalibrateArgs, args=[
+        "--checkpoint", run, "--source", "rollouts", "--percentiles", "20", "80", "--episodes", str(opts.episodes),
+        "--num-samples", str(opts.num_samples), "--num-steps", str(opts.num_steps),
+        "--out", str(tmp_path / "c.json")])
+    record = calibrate.main(args)
+    th = record["thresholds"]
+    assert record["percentiles"] == [20.0, 80.0] and th[0] < th[1] < th[2] < th[3]
+    env = rollout._make(TASK)
+    assert opts.episodes <= record["num_windows"] <= opts.episodes * math.ceil(env.max_steps / 8)
+    with pytest.raises(ValueError, match="percentiles"):
+        calibrate.main(calibrate.CalibrateArgs(checkpoint=run, percentiles=(50.0,), out=str(tmp_path / "x.json")))
+
+
+def test_paper_parsing_and_command_round_trip():
+    for name, cls in paper.SUBCOMMANDS.items():
+        args = paper.parse_args([name, "--budget", "smoke", "--tasks", "latch_door", "press_button",
+                                 "--seeds", "3", "4"])
+        assert type(args) is cls and args.tasks == ("latch_door", "press_button") and args.seeds == (3, 4)
+        assert paper.parse_args(shlex.split(paper.command_line(args))[3:]) == args
+    t = paper.parse_args(["thresholds", "--pairs", "5", "50", "20", "80", "--episodes", "7", "--no-progress"])
+    assert t.pairs == ((5.0, 50.0), (20.0, 80.0)) and t.episodes == 7 and not t.progress
+    h = paper.parse_args(["hparams", "--rows", "3", "8", "3", "1", "8", "2"])
+    assert h.rows == ((3, 8, 3), (1, 8, 2))
+    m = paper.parse_args(["main", "--obs-types", "state", "pointcloud"])
+    assert m.obs_types == m.resolved_obs_types() == ("state", "pointcloud")
+    assert paper.parse_args(["main"]).resolved_obs_types() == ("state",)  # point clouds only when asked on a CPU
+    assert paper.parse_args(["main", "--budget", "gpu"]).resolved_obs_types() == ("state", "pointcloud")
+    with pytest.raises(SystemExit):
+        paper.parse_args(["main", "--tasks", "open_drawer"])
+    with pytest.raises(SystemExit):
+        paper.parse_args(["figures"])
+    # variants are named by their config changes, so tables share runs (DP, HiPolicy)
+    base = paper.BUDGETS["cpu"].policy
+    assert paper.variant_name(paper.hparam_changes(3, 8, 3, base)) == "hipolicy"
+    assert paper.variant_name(paper.hparam_changes(3, 8, 1, base)) == paper.variant_name(paper.DP) == "dp"
+    assert paper.variant_name(paper.hparam_changes(1, 4, 2, base)) == "lc4_lh1_s1-2"
+
+
+def _fake_records(columns, tasks, seeds, rng):
+    records = []
+    for t in tasks:
+        for s in seeds:
+            for c in columns:
+                sr = float(rng.integers(0, 11)) / 10
+                records.append({"task": t, "seed": s, "column": c, "success_rate": sr,
+                                "mean_steps_success": float(rng.uniform(40, 120)) if sr > 0 else float("nan"),
+                                "mean_steps": 100.0, "stride1_frac": 0.5, "stride2_frac": 0.3, "stride3_frac": 0.2,
+                                "thresholds": [-math.inf, -1.0, -0.5, math.inf]})
+    return records
+
+
+def test_paper_tables_on_fake_numbers(tmp_path, monkeypatch):
+    rng = np.random.default_rng(0)
+    monkeypatch.setattr(paper, "collect", lambda args, columns: _fake_records(
+        [c.label for c in columns], args.tasks, args.seeds, rng))
+    common = dict(budget="smoke", seeds=(0, 1, 2), runs=str(tmp_path / "runs"), results=str(tmp_path / "res"),
+                  data=str(tmp_path / "data"), progress=False)
+    tasks = ("press_button", "latch_door", "stack_cubes")
+    for args in (paper.MainArgs(tasks=tasks, obs_types=("state", "pointcloud"), **common),
+                 paper.AblationArgs(tasks=tasks, **common), paper.EntropyArgs(tasks=tasks, **common),
+                 paper.ThresholdsArgs(**common), paper.HparamsArgs(tasks=("press_button", "latch_door"), **common)):
+        md = paper.main(args)
+        name = paper.table_name(args)
+        text = open(md).read()
+        assert paper.command_line(args) in text and "Seeds: 0, 1, 2" in text
+        assert (tmp_path / "res" / f"{name}.png").stat().st_size > 0
+        assert len(_load(tmp_path / "res" / f"{name}.json")["records"]) > 0
+        table = [line for line in text.splitlines() if line.startswith("|")]
+        assert len({line.count("|") for line in table}) == 1, text  # every row has the header's columns
+        assert " ± " in text
+    main_md = open(tmp_path / "res" / "main.md").read()
+    # precise tasks (press_button, stack_cubes) come first, each group is followed by its average
+    order = [main_md.index(k) for k in ("| press_button", "| stack_cubes", "Average (precise)", "| latch_door",
+                                        "Average (non-precise)", "Total average")]
+    assert order == sorted(order) and "DP3+HiPolicy" in main_md
+
+
+def test_table_formatting_helpers():
+    assert paper.mean_std([0.5, 0.7], 100.0) == "60.0 ± 14.1"
+    assert paper.mean_std([0.25], 100.0) == "25.0" and paper.mean_std([float("nan"), None]) == "–"
+    assert paper.mean_std([1.0, float("nan"), 3.0]) == "2.0 ± 1.4"  # seeds without a value are left out
+    md = paper.markdown_table(["Task", "SR"], [["a", "1.0"], ["b", "2.0 ± 0.1"]])
+    assert md.splitlines() == ["| Task | SR |", "| :--- | ---: |", "| a | 1.0 |", "| b | 2.0 ± 0.1 |"]
+    recs = [{"task": "t", "seed": s, "column": "c", "success_rate": v} for s, v in ((0, 0.2), (1, 0.4))]
+    assert paper.values(recs, "success_rate", (0, 1, 2), task="t", column="c")[:2] == [0.2, 0.4]
+    assert math.isnan(paper.values(recs, "success_rate", (0, 1, 2), task="t", column="c")[2])
+
+
+@pytest.mark.slow
+def test_record_trajectory_matches_batched_rollout():
+    """``video.record_trajectory`` runs the evaluation's episode loop: same episode key, same outcome."""
+    from hipolicy_jax.envs import video
+
+    env = rollout._make(TASK)
+    policy_fn, init_fn = rollout.expert_policy(env, 8)
+    key = jax.random.PRNGKey(3)
+    res, rec = rollout.rollout_episodes(policy_fn, init_fn, env, 1, key, history_len=3, chunk_len=8)
+    traj = video.record_trajectory(env, jax.random.split(key, 1)[0], policy_fn, init_fn, history_len=3)
+    assert traj.success and traj.steps == int(res.steps[0]) and traj.qpos.shape[0] == traj.steps + 1
+    np.testing.assert_allclose(traj.qpos, np.asarray(rec.qpos[0, :traj.steps + 1]), atol=1e-5)
+    frames = video.annotate_frames(video.render_frames(env, traj._replace(qpos=traj.qpos[:3]), height=24, width=32,
+                                                       backend="raycast"), traj)
+    assert frames.shape == (3, 24, 32, 3) and frames.dtype == np.uint8
+
+
+@pytest.mark.slow
+def test_paper_entropy_smoke_reuses_trained_run(tiny):
+    args, run = tiny
+    md = paper.main(args)  # trains only the DP run; the HiPolicy run of the fixture is reused
+    text = open(md).read()
+    assert "python -m experiments.paper entropy --budget smoke" in text and "Seeds: 0" in text
+    assert "| press_button |" in text and os.path.getsize(os.path.join(args.results, "entropy.png")) > 0
+    records = _load(os.path.join(args.results, "entropy.json"))["records"]
+    assert {r["column"] for r in records} == {"DP", "w/o EG", "HiPolicy"}
+    assert all(0.0 <= r["success_rate"] <= 1.0 for r in records)
+    by = {r["column"]: r for r in records}
+    assert by["w/o EG"]["run"] == by["HiPolicy"]["run"] == os.path.abspath(run)
+    assert by["w/o EG"]["stride1_frac"] == 1.0 and by["DP"]["stride1_frac"] == 1.0
+    evals = _load(os.path.join(run, "paper_evals.json"))
+    assert len(evals) == 2  # with and without entropy guidance, cached
