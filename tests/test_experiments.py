@@ -27,10 +27,8 @@ def tiny(tmp_path_factory):
     args = paper.EntropyArgs(budget="smoke", tasks=(TASK,), seeds=(0,), runs=str(root / "runs"),
                              results=str(root / "results"), data=str(root / "data"), progress=False)
     targs = paper.train_args(args, TASK, "state", (), 0)
-    with xla_compiles() as compiled:
-        summary = train_main(targs)
+    summary = train_main(targs)
     assert summary["steps"] == paper.BUDGETS["smoke"].train.num_steps
-    assert "jit(episode)" in compiled  # the final evaluation compiled the batched rollout
     return args, targs.out_dir()
 
 
