@@ -7,6 +7,7 @@ Every benchmark prints a table and writes ``benchmarks/results/<name>_<device>.j
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import json
 import math
@@ -43,6 +44,23 @@ SIZES: dict[str, dict[str, Any]] = {
 def device_kind() -> str:
     """``cpu``, ``gpu`` or ``tpu``: the default backend, used in result file names."""
     return jax.default_backend()
+
+
+def base_parser(name: str, doc: str | None, *, grid: bool = False) -> argparse.ArgumentParser:
+    """The flags every benchmark shares: ``--out-dir``, ``--matmul-precision`` and, with ``grid``, the
+    ``--sizes`` / ``--obs`` grid (a small CPU default, the full grid on an accelerator)."""
+    p = argparse.ArgumentParser(prog=f"python -m benchmarks.{name}", description=doc,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    if grid:
+        cpu = device_kind() == "cpu"
+        p.add_argument("--sizes", nargs="+", default=["cpu"] if cpu else ["cpu", "paper"],
+                       choices=["tiny", "cpu", "paper"])
+        p.add_argument("--obs", nargs="+", default=["state"] if cpu else ["state", "image", "pointcloud"],
+                       choices=["state", "image", "pointcloud"])
+    p.add_argument("--matmul-precision", default="default",
+                   help="jax.default_matmul_precision, e.g. 'bfloat16' (bf16 matmuls on a GPU)")
+    p.add_argument("--out-dir", default=None, help="where the JSON goes (default benchmarks/results)")
+    return p
 
 
 def device_description() -> str:

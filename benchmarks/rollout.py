@@ -16,7 +16,7 @@ import sys
 import jax
 import numpy as np
 
-from benchmarks.common import (device_kind, latency_stats, make_bench_policy, markdown_table, precision_context,
+from benchmarks.common import (base_parser, device_kind, latency_stats, make_bench_policy, markdown_table, precision_context,
                                timed_calls, write_results)
 from hipolicy_jax import envs
 from hipolicy_jax.envs.rollout import evaluate
@@ -27,8 +27,7 @@ NAME = "rollout"
 
 def parse_args(argv=None) -> argparse.Namespace:
     cpu = device_kind() == "cpu"
-    p = argparse.ArgumentParser(prog="python -m benchmarks.rollout", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = base_parser(NAME, __doc__)
     p.add_argument("--task", default="press_button")
     p.add_argument("--size", default="cpu", choices=["tiny", "cpu", "paper"])
     p.add_argument("--batches", nargs="+", type=int, default=[1, 16, 100], help="episodes per rollout")
@@ -39,9 +38,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="control steps per episode (default: the task's limit on a GPU, 48 on a CPU)")
     p.add_argument("--repeats", type=int, default=3 if cpu else 10)
     p.add_argument("--row-budget-s", type=float, default=60.0 if cpu else None)
-    p.add_argument("--matmul-precision", default="default", help="e.g. 'bfloat16' for bf16 matmuls on a GPU")
     p.add_argument("--quick", action="store_true", help="batches 1 and 16, 24 control steps, 2 repeats")
-    p.add_argument("--out-dir", default=None)
     args = p.parse_args(argv)
     if args.quick:
         args.batches, args.max_steps, args.repeats = [1, 16], 24, 2

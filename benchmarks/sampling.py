@@ -22,7 +22,7 @@ import sys
 import jax
 import jax.numpy as jnp
 
-from benchmarks.common import (MemoryMonitor, compiled_flops, device_kind, latency_stats, make_bench_policy,
+from benchmarks.common import (MemoryMonitor, base_parser, compiled_flops, device_kind, latency_stats, make_bench_policy,
                                markdown_table, matmul_peak_gflops, param_count, precision_context, timed_calls,
                                write_results)
 from hipolicy_jax import diffusion
@@ -36,12 +36,7 @@ NAME = "sampling"
 def parse_args(argv=None) -> argparse.Namespace:
     """Command-line flags; defaults depend on the device (a full grid on an accelerator, a small one on a CPU)."""
     cpu = device_kind() == "cpu"
-    p = argparse.ArgumentParser(prog="python -m benchmarks.sampling", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--sizes", nargs="+", default=["cpu"] if cpu else ["cpu", "paper"],
-                   choices=["tiny", "cpu", "paper"])
-    p.add_argument("--obs", nargs="+", default=["state"] if cpu else ["state", "image", "pointcloud"],
-                   choices=["state", "image", "pointcloud"])
+    p = base_parser(NAME, __doc__, grid=True)
     p.add_argument("--ns", nargs="+", type=int, default=[1, 10, 100] if cpu else [1, 5, 10, 100, 500])
     p.add_argument("--samplers", nargs="+", default=["ddim", "ddpm"], choices=["ddpm", "ddim"])
     p.add_argument("--ddim-steps", type=int, default=10)
@@ -51,11 +46,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--loop-ns", nargs="+", type=int, default=None,
                    help="N values timed as a Python loop of N single calls (default: the largest N <= 100)")
     p.add_argument("--loop-repeats", type=int, default=3 if cpu else 5)
-    p.add_argument("--matmul-precision", default="default",
-                   help="jax.default_matmul_precision for the sampler, e.g. 'bfloat16' (bf16 matmuls on a GPU)")
     p.add_argument("--peak-n", type=int, default=None, help="matmul size of the peak estimate (default 2048 / 8192)")
     p.add_argument("--quick", action="store_true", help="cpu size, state obs, DDIM only, N 1/10, 5 repeats")
-    p.add_argument("--out-dir", default=None, help="where the JSON goes (default benchmarks/results)")
     args = p.parse_args(argv)
     if args.quick:
         args.sizes, args.obs, args.samplers, args.ns, args.repeats = ["cpu"], ["state"], ["ddim"], [1, 10], 5

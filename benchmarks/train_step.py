@@ -17,7 +17,7 @@ import time
 import jax
 import numpy as np
 
-from benchmarks.common import (ACTION_DIM, example_obs, device_kind, latency_stats, make_bench_policy,
+from benchmarks.common import (ACTION_DIM, base_parser, example_obs, device_kind, latency_stats, make_bench_policy,
                                markdown_table, param_count, precision_context, timed_calls, write_results)
 from hipolicy_jax.config import TrainConfig
 from hipolicy_jax.training import init_train_state, make_optimizer, make_train_step
@@ -27,18 +27,11 @@ NAME = "train_step"
 
 def parse_args(argv=None) -> argparse.Namespace:
     cpu = device_kind() == "cpu"
-    p = argparse.ArgumentParser(prog="python -m benchmarks.train_step", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--sizes", nargs="+", default=["cpu"] if cpu else ["cpu", "paper"],
-                   choices=["tiny", "cpu", "paper"])
-    p.add_argument("--obs", nargs="+", default=["state"] if cpu else ["state", "image", "pointcloud"],
-                   choices=["state", "image", "pointcloud"])
+    p = base_parser(NAME, __doc__, grid=True)
     p.add_argument("--batch", type=int, default=128)
     p.add_argument("--repeats", type=int, default=20)
     p.add_argument("--row-budget-s", type=float, default=30.0 if cpu else None)
-    p.add_argument("--matmul-precision", default="default", help="e.g. 'bfloat16' for bf16 matmuls on a GPU")
     p.add_argument("--quick", action="store_true", help="cpu size, state obs, 5 repeats")
-    p.add_argument("--out-dir", default=None)
     args = p.parse_args(argv)
     if args.quick:
         args.sizes, args.obs, args.repeats = ["cpu"], ["state"], 5

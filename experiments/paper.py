@@ -363,6 +363,16 @@ def write_results(args: PaperArgs, title: str, notes: list[str], table: str, rec
     return md
 
 
+def success_by_task_figure(args: PaperArgs, records: list[dict], labels: list[str], title: str):
+    """``figure(path)``: success-rate bars per task, one bar per column label."""
+    def figure(path):
+        series = {c: [values(records, "success_rate", args.seeds, task=t, column=c) for t in args.tasks]
+                  for c in labels}
+        return bar_figure(path, list(args.tasks), [("success rate", series)], title)
+
+    return figure
+
+
 def bar_figure(path: str, groups: list[str], panels: list[tuple[str, dict[str, list[list[float]]]]],
                title: str) -> str:
     """Grouped bar chart(s): per panel (ylabel, {series: per-group per-seed values}), mean with std error bars."""
@@ -458,11 +468,7 @@ def main_table(args: MainArgs) -> str:
              "(10th / 70th percentiles); relative gain over the baseline in the average rows.",
              "DP = one stride (single-frequency Diffusion Policy); DP3 = point-cloud encoder, sample prediction."]
 
-    def figure(path):
-        series = {c: [values(records, "success_rate", args.seeds, task=t, column=c) for t in args.tasks]
-                  for c in labels}
-        return bar_figure(path, list(args.tasks), [("success rate", series)], "main results")
-
+    figure = success_by_task_figure(args, records, labels, "main results")
     return write_results(args, "Main results: success rate (%)", notes, table, records, figure)
 
 
@@ -480,11 +486,7 @@ def ablation_table(args: AblationArgs) -> str:
              "own frequency's observations (Hier.), or all on the lowest (Low) / highest (High); w/o Fusion: no "
              "CLS-token attention; w/o Hier.: one stride (DP)."]
 
-    def figure(path):
-        series = {c: [values(records, "success_rate", args.seeds, task=t, column=c) for t in args.tasks]
-                  for c in labels}
-        return bar_figure(path, list(args.tasks), [("success rate", series)], "ablation")
-
+    figure = success_by_task_figure(args, records, labels, "ablation")
     return write_results(args, "Ablation: success rate (%)", notes, table, records, figure)
 
 
