@@ -225,7 +225,7 @@ def train_args(args: PaperArgs, task: str, obs_type: str, changes, seed: int):
                                                                       b.demos)))
     return TrainArgs(task=task, out=run_dir(args, task, obs_type, changes, seed), data=data, episodes=b.demos,
                      val_ratio=b.val_ratio, policy=policy, train=dataclasses.replace(b.train, seed=seed),
-                     eval=eval_options(args), progress=args.progress)
+                     eval=eval_options(args), progress=args.progress, final_eval=False)
 
 
 def ensure_trained(targs) -> Run:
