@@ -22,7 +22,7 @@ from hipolicy_jax.models import (
     init_variables,
     param_count,
 )
-from hipolicy_jax.models.unet import apply_film
+from hipolicy_jax.models.unet import Conv1d, Upsample1d, apply_film
 
 A = 4  # action dim
 D = 10  # state dim
@@ -253,6 +253,36 @@ def test_condition_modes_and_fusion_change_the_output(unet3):
     bumped = jax.tree_util.tree_map(lambda a: a, variables)
     bumped["params"]["down0_res1"]["fusion"]["cls"] = bumped["params"]["down0_res1"]["fusion"]["cls"] + 1.0
     assert differs(outs["hier"], run(unet_for(cfg), bumped, x, t, cond))
+
+
+@pytest.mark.parametrize("t", [1, 2, 4, 5, 9])
+@pytest.mark.parametrize("kernel_size,stride", [(5, 1), (3, 2), (1, 1)])
+def test_conv1d_matches_nn_conv(t, kernel_size, stride):
+    """Same parameter tree and init as ``nn.Conv``, same outputs and gradients, also where ``T < k`` (im2col path)."""
+    x = jax.random.normal(jax.random.key(0), (3, t, 6))
+    ref = nn.Conv(7, (kernel_size,), strides=stride, padding=kernel_size // 2)
+    ours = Conv1d(7, kernel_size, stride=stride)
+    p_ref, p_ours = ref.init(jax.random.key(1), x), ours.init(jax.random.key(1), x)
+    assert jax.tree.all(jax.tree.map(lambda a, b: a.shape == b.shape and bool(jnp.all(a == b)), p_ref, p_ours))
+    p = jax.tree.map(lambda a: a + jax.random.normal(jax.random.key(2), a.shape), p_ref)  # non-zero bias
+    np.testing.assert_allclose(ours.apply(p, x), ref.apply(p, x), atol=1e-5)
+    g_ref = jax.grad(lambda p, x: jnp.sum(jnp.sin(ref.apply(p, x))), argnums=(0, 1))(p, x)
+    g_ours = jax.grad(lambda p, x: jnp.sum(jnp.sin(ours.apply(p, x))), argnums=(0, 1))(p, x)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, atol=1e-4), g_ours, g_ref)
+
+
+@pytest.mark.parametrize("t", [1, 2, 4, 7])
+def test_upsample_matches_conv_transpose(t):
+    """``Upsample1d`` is ``nn.ConvTranspose(C, (4,), strides=(2,), padding=((2, 2),))``: params, init and outputs."""
+    x = jax.random.normal(jax.random.key(0), (2, t, 5))
+    ref = nn.ConvTranspose(3, (4,), strides=(2,), padding=((2, 2),))
+    ours = Upsample1d(3)
+    p_ref, p_ours = ref.init(jax.random.key(1), x), ours.init(jax.random.key(1), x)
+    assert jax.tree.all(jax.tree.map(lambda a, b: a.shape == b.shape and bool(jnp.all(a == b)), p_ref, p_ours))
+    p = jax.tree.map(lambda a: a + jax.random.normal(jax.random.key(2), a.shape), p_ref)
+    y = ours.apply(p, x)
+    assert y.shape == (2, 2 * t, 3)
+    np.testing.assert_allclose(y, ref.apply(p, x), atol=1e-5)
 
 
 def test_apply_film_modulates_each_segment_with_its_own_condition():
