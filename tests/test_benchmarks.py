@@ -8,7 +8,7 @@ import math
 
 import pytest
 
-from benchmarks import optimisation, rollout, sampling, train_step
+from benchmarks import convolutions, optimisation, rollout, sampling, train_step
 
 
 def _load(out_dir, name):
@@ -65,7 +65,18 @@ def test_optimisation_benchmark(tmp_path):
     assert row["max_abs_diff"] < 1e-4 and row["retraces"] == 0
 
 
-@pytest.mark.parametrize("module", [sampling, train_step, rollout, optimisation])
+def test_convolutions_benchmark(tmp_path):
+    """Both variants compile and agree (native vs im2col / polyphase) on the tiny U-Net at a short horizon."""
+    convolutions.main(["--size", "tiny", "--configs", "DP L_c=8", "--batch", "4", "--num-samples", "2",
+                       "--ddim-steps", "2", "--rounds", "2", "--out-dir", str(tmp_path)])
+    rows = _load(tmp_path, "convolutions")["rows"]
+    assert [r["kind"] for r in rows] == ["train", "sample"]
+    for r in rows:
+        _finite(r, ["native_median_s", "after_median_s", "speedup", "max_abs_diff"])
+        assert r["max_abs_diff"] < 1e-4
+
+
+@pytest.mark.parametrize("module", [sampling, train_step, rollout, optimisation, convolutions])
 def test_benchmark_flags_parse(module):
     assert module.parse_args([]).out_dir is None
 
