@@ -38,7 +38,8 @@ class TrainArgs:
     progress: bool = True
     dry_run: bool = False  # validate config and data, print shapes and parameter count, train nothing
     num_devices: int | None = None  # data-parallel devices (default: all local devices)
-    final_eval: bool = True  # evaluate the trained policy at the end (paper tables evaluate on their own)
+    final_eval: bool = True  # evaluate the trained policy at the end (paper tables evaluate on their own: with
+    # --eval.every 0 and --no-final-eval nothing is rolled out during training)
 
     def out_dir(self) -> str:
         return self.out or os.path.join("runs", f"{self.task}_{self.policy.encoder.obs_type}_seed{self.train.seed}")
@@ -93,33 +94,43 @@ def main(args: TrainArgs) -> dict:
     action_dim = int(buffer.data["action"].shape[-1])
     net = PolicyNet(cfg, action_dim)  # a value: equal to the one ``fit`` builds
 
+    last: dict = {}  # the latest in-training evaluation, reused when it ran on the final state
+
     def eval_fn(state, step):
+        # calibration always uses keys["eval"], so at the final step it equals calibration.json's (and
+        # experiments.calibrate's); the episodes differ per evaluation step
         params, norm = state.ema_params, train_ds.normalizer
-        th, _ = calibrate(net, params, norm, cfg, action_dim, val_ds, args.eval, jax.random.fold_in(keys["eval"], step))
+        th, h = calibrate(net, params, norm, cfg, action_dim, val_ds, args.eval, keys["eval"])
         res = evaluate_policy(net, params, norm, cfg, action_dim, args.task, args.eval,
                               jax.random.fold_in(keys["eval"], step), thresholds=th)
         summary = eval_summary(res)
+        last.update(step=step, thresholds=th, entropies=h, summary=summary)
         print(f"\n[eval @ {step}] " + ", ".join(f"{k}={v:.3g}" for k, v in summary.items()))
         return summary
 
-    result = fit(cfg, args.train, train_ds, out, eval_fn=eval_fn, eval_every=args.eval.every or None,
+    result = fit(cfg, args.train, train_ds, out, eval_fn=eval_fn if (args.eval.every or args.final_eval) else None,
+                 eval_every=args.eval.every or None,
                  meta_extra={"task": args.task, "data": os.path.abspath(args.data_path()),
                              "val_ratio": args.val_ratio}, progress=args.progress, num_devices=args.num_devices)
-    params = result.state.ema_params
-    thresholds, entropies = calibrate(result.net, params, train_ds.normalizer, cfg, action_dim, val_ds, args.eval,
-                                      keys["eval"])
+    params, step = result.state.ema_params, int(result.state.step)
+    if last.get("step") == step:
+        thresholds, entropies, final = last["thresholds"], last["entropies"], last["summary"]
+    else:
+        thresholds, entropies = calibrate(result.net, params, train_ds.normalizer, cfg, action_dim, val_ds,
+                                          args.eval, keys["eval"])
+        final = None
+        if args.final_eval:
+            final = eval_summary(evaluate_policy(result.net, params, train_ds.normalizer, cfg, action_dim,
+                                                 args.task, args.eval, jax.random.fold_in(keys["eval"], step),
+                                                 thresholds=thresholds))
     write_json(os.path.join(out, "calibration.json"),
                {"thresholds": list(thresholds), "percentiles": list(args.eval.percentiles),
                 "num_windows": int(entropies.size), "num_samples": args.eval.num_samples,
                 "sampler": args.eval.sampler, "num_steps": args.eval.num_steps,
                 "entropy_quantiles": {str(q): float(np.percentile(entropies, q)) for q in (0, 10, 50, 70, 100)}
                 if entropies.size else {}})
-    final = None
-    if args.final_eval:
-        final = evaluate_policy(result.net, params, train_ds.normalizer, cfg, action_dim, args.task, args.eval,
-                                jax.random.fold_in(keys["eval"], 10**9), thresholds=thresholds)
     summary = {"task": args.task, "steps": int(result.state.step), "param_count": result.meta["param_count"],
-               "thresholds": list(thresholds), "eval": None if final is None else eval_summary(final),
+               "thresholds": list(thresholds), "eval": final,
                "final_loss": float(np.mean(result.losses[-50:])) if result.losses else None,
                "wall_time_s": time.perf_counter() - t0, "out": os.path.abspath(out)}
     write_json(os.path.join(out, "summary.json"), summary)
