@@ -427,6 +427,37 @@ def test_obs_encoder_shares_weights_across_frames_and_frequencies():
     np.testing.assert_allclose(enc.apply(variables, one_frame), cond[:, :, f:2 * f], rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.parametrize("obs_type", ["pointcloud", "image"])
+def test_obs_encoder_encodes_each_distinct_frame_once(obs_type):
+    """With the windows' frame offsets the encoder runs on the 6 distinct steps of strides 1/2/3 x L_h 3 (not 9)
+    and gives the per-position result on windows gathered from one frame sequence (as ``data.windowing`` does)."""
+    from hipolicy_jax.data.windowing import history_window_indices, obs_offsets
+    from hipolicy_jax.models.encoders import ImageEncoder, PointCloudEncoder
+
+    cfg = tiny_cfg(obs_type)
+    span, idx = cfg.chunk.obs_span, history_window_indices(cfg.chunk)  # (M, L_h) into the span frames
+    seq = {k: jax.random.normal(jax.random.key(i), (B, span) + v.shape[3:])
+           for i, (k, v) in enumerate(make_obs(cfg).items())}
+    obs = {k: v[:, idx] for k, v in seq.items()}  # (B, M, L_h, ...): equal offsets hold equal frames
+    offsets = tuple(map(tuple, obs_offsets(cfg.chunk).tolist()))
+    plain, shared = ObsEncoder(cfg.encoder), ObsEncoder(cfg.encoder, frame_offsets=offsets)
+    variables = quick_init(plain, obs)
+    heavy = ImageEncoder if obs_type == "image" else PointCloudEncoder
+    seen = []
+
+    def record(next_fun, args, kwargs, context):
+        if isinstance(context.module, heavy) and context.method_name == "__call__":
+            seen.append(args[0].shape[:2])
+        return next_fun(*args, **kwargs)
+
+    with nn.intercept_methods(record):
+        out = shared.apply(variables, obs)
+    assert seen == [(B, len(np.unique(obs_offsets(cfg.chunk))))] == [(B, 6)]
+    np.testing.assert_allclose(out, plain.apply(variables, obs), rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="frame_offsets"):
+        ObsEncoder(cfg.encoder, frame_offsets=offsets[:2]).apply(variables, obs)
+
+
 @pytest.mark.parametrize(
     "obs_type, key, bad",
     [

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import flax.linen as nn
 
 from hipolicy_jax.config import PolicyConfig
+from hipolicy_jax.data.windowing import obs_offsets
 from hipolicy_jax.models.encoders import ObsEncoder
 from hipolicy_jax.models.unet import ConditionalUnet1D, FiLMParts
 
@@ -40,7 +41,8 @@ class PolicyNet(nn.Module):
 
     def setup(self):
         model, chunk = self.cfg.model, self.cfg.chunk
-        self.obs_encoder = ObsEncoder(self.cfg.encoder)
+        offsets = tuple(tuple(int(o) for o in row) for row in obs_offsets(chunk))
+        self.obs_encoder = ObsEncoder(self.cfg.encoder, frame_offsets=offsets)  # each distinct frame encoded once
         self.unet = ConditionalUnet1D(
             down_dims=model.unet_dims,
             kernel_size=model.unet_kernel,
