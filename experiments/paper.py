@@ -290,7 +290,8 @@ def collect(args: PaperArgs, columns: list[Column]) -> list[dict]:
                 run = ensure_trained(train_args(args, task, col.obs_type, col.changes, seed))
                 th = _thresholds(run, col, opts, seed, entropy_cache)
                 summary = evaluate_cached(run, opts, seed, th, col.guided)
-                records.append({"task": task, "seed": seed, "column": col.label, "run": run.run_dir, **summary})
+                records.append({"task": task, "seed": seed, "column": col.label,
+                                "run": os.path.relpath(run.run_dir), **summary})
                 print(f"[paper {time.perf_counter() - t0:7.0f}s] {task} seed {seed} {col.label}: success "
                       f"{summary['success_rate']:.2f}, steps (successful) {summary['mean_steps_success']:.1f}",
                       flush=True)
