@@ -1,6 +1,6 @@
 """Assemble ``benchmarks/results/PERFORMANCE.md`` (the README "Performance" section) from the result JSONs.
 
-    python -m benchmarks.report [--device cpu] [--notes FILE]
+    python -m benchmarks.report [--device cpu] [--notes benchmarks/results/notes_cpu.md]
 
 Each benchmark's section gives the command it was run with and its markdown table; ``--notes`` (markdown) is
 inserted after the heading, for the figures that need prose (the ratios quoted in the summary).
@@ -16,6 +16,7 @@ from benchmarks.common import RESULTS_DIR, device_kind
 
 SECTIONS = (("sampling", "One-call N-sample latency (the paper's sample-times table)"),
             ("optimisation", "Sampler optimisations, before / after (interleaved, one run)"),
+            ("convolutions", "Short-sequence U-Net convolutions, before / after (interleaved, one run)"),
             ("train_step", "Train-step throughput"),
             ("rollout", "Closed-loop rollout throughput (MJX, policy in the loop)"))
 
