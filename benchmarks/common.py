@@ -242,6 +242,19 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o)}")
 
 
+def report_rows(name: str, argv, args, rows: list[dict], table: str, **extra) -> dict:
+    """Print ``table``, write ``{command, args, **extra, rows, table_md}`` as the benchmark's JSON; → the payload.
+    ``argv``: the ``main(argv)`` argument (None: ``sys.argv[1:]``); ``args``: the parsed namespace."""
+    import sys
+
+    print(table)
+    payload = {"command": f"python -m benchmarks.{name} " + " ".join(sys.argv[1:] if argv is None else argv),
+               "args": {k: v for k, v in vars(args).items() if k != "out_dir"}, **extra, "rows": rows,
+               "table_md": table}
+    print(f"wrote {write_results(name, payload, args.out_dir)}")
+    return payload
+
+
 def markdown_table(headers: list[str], rows: list[list[Any]]) -> str:
     """A GitHub markdown table; floats are printed with 4 significant digits."""
     def fmt(v):

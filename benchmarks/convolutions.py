@@ -21,7 +21,6 @@ N samples, DDIM steps) per config and variant; ``max abs diff`` compares the var
 from __future__ import annotations
 
 import contextlib
-import sys
 import time
 
 import flax.linen as nn
@@ -29,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks.common import base_parser, make_bench_policy, markdown_table, write_results
+from benchmarks.common import base_parser, make_bench_policy, markdown_table, report_rows
 from hipolicy_jax.config import TrainConfig, replace
 from hipolicy_jax.models import unet
 from hipolicy_jax.models.policy_net import PolicyNet, init_policy_params
@@ -157,11 +156,7 @@ def main(argv=None) -> dict:
     table = markdown_table(["config", "call", "rounds", "native ms", "after ms", "native/after", "max abs diff"],
                            [[r["config"], what[r["kind"]], r["rounds"], r["native_median_s"] * 1e3,
                              r["after_median_s"] * 1e3, r["speedup"], r["max_abs_diff"]] for r in rows])
-    print(table)
-    payload = {"command": "python -m benchmarks.convolutions " + " ".join(sys.argv[1:] if argv is None else argv),
-               "args": {k: v for k, v in vars(args).items() if k != "out_dir"}, "rows": rows, "table_md": table}
-    print(f"wrote {write_results(NAME, payload, args.out_dir)}")
-    return payload
+    return report_rows(NAME, argv, args, rows, table)
 
 
 if __name__ == "__main__":

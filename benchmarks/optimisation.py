@@ -23,13 +23,12 @@ import argparse
 import contextlib
 import dataclasses
 import math
-import sys
 import time
 
 import jax
 import numpy as np
 
-from benchmarks.common import device_kind, make_bench_policy, markdown_table, write_results
+from benchmarks.common import device_kind, make_bench_policy, markdown_table, report_rows
 from hipolicy_jax.models import unet
 from hipolicy_jax.sampling import sample_jit
 
@@ -158,12 +157,7 @@ def main(argv=None) -> dict:
         [[r["sampler"], r["steps"], r["n"], r["rounds"], r["before_median_s"] * 1e3, r["film_median_s"] * 1e3,
           r["mish_median_s"] * 1e3, r["after_median_s"] * 1e3, r["speedup_after"], r["max_abs_diff"]]
          for r in rows])
-    print(table)
-    payload = {"command": "python -m benchmarks.optimisation " + " ".join(sys.argv[1:] if argv is None else argv),
-               "args": {k: v for k, v in vars(args).items() if k != "out_dir"}, "size": args.size,
-               "obs": args.obs, "rows": rows, "table_md": table}
-    print(f"wrote {write_results(NAME, payload, args.out_dir)}")
-    return payload
+    return report_rows(NAME, argv, args, rows, table, size=args.size, obs=args.obs)
 
 
 if __name__ == "__main__":

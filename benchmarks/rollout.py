@@ -11,13 +11,12 @@ Uses the evaluation path itself: ``envs.rollout.evaluate`` with ``policy.make_po
 from __future__ import annotations
 
 import argparse
-import sys
 
 import jax
 import numpy as np
 
 from benchmarks.common import (base_parser, device_kind, latency_stats, make_bench_policy, markdown_table, precision_context,
-                               timed_calls, write_results)
+                               timed_calls, report_rows)
 from hipolicy_jax import envs
 from hipolicy_jax.envs.rollout import evaluate
 from hipolicy_jax.policy import PolicyArgs, make_policy_fn
@@ -79,12 +78,7 @@ def main(argv=None) -> dict:
                             "first call s"],
                            [[r["episodes"], r["median_s"], r["control_steps"][0], r["env_steps_per_s"],
                              r["replans_per_s"], r["samples_per_s"], r["compile_s"]] for r in rows])
-    print(table)
-    payload = {"command": "python -m benchmarks.rollout " + " ".join(sys.argv[1:] if argv is None else argv),
-               "args": {k: v for k, v in vars(args).items() if k != "out_dir"}, "task": args.task,
-               "chunk_len": cfg.chunk.chunk_len, "rows": rows, "table_md": table}
-    print(f"wrote {write_results(NAME, payload, args.out_dir)}")
-    return payload
+    return report_rows(NAME, argv, args, rows, table, task=args.task, chunk_len=cfg.chunk.chunk_len)
 
 
 if __name__ == "__main__":

@@ -11,14 +11,13 @@ reported separately from the steady-state median.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 
 import jax
 import numpy as np
 
 from benchmarks.common import (ACTION_DIM, base_parser, example_obs, device_kind, latency_stats, make_bench_policy,
-                               markdown_table, param_count, precision_context, timed_calls, write_results)
+                               markdown_table, param_count, precision_context, timed_calls, report_rows)
 from hipolicy_jax.config import TrainConfig
 from hipolicy_jax.training import init_train_state, make_optimizer, make_train_step
 
@@ -91,11 +90,7 @@ def main(argv=None) -> dict:
          "first step s"],
         [[r["size"], r["obs"], f"{r['params']:,}", r["batch"], r["median_s"] * 1e3, r["p90_s"] * 1e3,
           r["steps_per_s"], r["samples_per_s"], r["compile_s"], r["first_step_s"]] for r in rows])
-    print(table)
-    payload = {"command": "python -m benchmarks.train_step " + " ".join(sys.argv[1:] if argv is None else argv),
-               "args": {k: v for k, v in vars(args).items() if k != "out_dir"}, "rows": rows, "table_md": table}
-    print(f"wrote {write_results(NAME, payload, args.out_dir)}")
-    return payload
+    return report_rows(NAME, argv, args, rows, table)
 
 
 if __name__ == "__main__":
