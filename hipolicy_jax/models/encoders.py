@@ -199,8 +199,10 @@ class ObsEncoder(nn.Module):
     distinct steps in 9 positions; every window ends at the current frame), so each distinct step is encoded once and
     its feature reused: 1.5x less encoder work for the defaults, which dominates with images or point clouds. This
     relies on windows built by ``data.windowing`` (equal offsets hold equal frames, also where episode starts are
-    edge-padded); the first position holding an offset is the one encoded. A missing key, a wrong rank, a wrong trailing size or leading dims that
-    disagree with ``state`` raise ``ValueError`` naming the key and the expected shape.
+    edge-padded); the first position holding an offset is the one encoded.
+
+    A missing key, a wrong rank, a wrong trailing size or leading dims that disagree with ``state`` raise
+    ``ValueError`` naming the key and the expected shape.
     """
 
     cfg: EncoderConfig
