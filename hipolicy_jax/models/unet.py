@@ -137,8 +137,8 @@ def conv1d(x: jax.Array, kernel: jax.Array, padding: tuple[int, int], stride: in
 
     Where the input is shorter than the kernel (the deepest U-Net levels of short chunks: ``T = 2, 4`` with
     ``k = 5``), XLA swaps the convolution's operands and its CPU backend runs the result ~35x slower than the
-    equivalent im2col matmul (forward and gradient; ``benchmarks.convolutions`` measures the model-level gain). There the windows are
-    gathered and multiplied directly; otherwise the native convolution runs.
+    equivalent im2col matmul (forward and gradient; ``benchmarks.convolutions`` measures the model-level gain).
+    There the windows are gathered and multiplied directly; otherwise the native convolution runs.
     """
     k = kernel.shape[0]
     if x.shape[1] >= k:
