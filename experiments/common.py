@@ -16,8 +16,8 @@ from typing import Literal, NamedTuple
 import jax
 import numpy as np
 
-from hipolicy_jax.config import (ChunkConfig, DiffusionConfig, ModelConfig, PolicyConfig, SamplingConfig,
-                                 TrainConfig)
+from hipolicy_jax.config import (ChunkConfig, DiffusionConfig, EncoderConfig, ModelConfig, PolicyConfig,
+                                 SamplingConfig, TrainConfig)
 from hipolicy_jax.data.dataset import SequenceDataset, split_episodes
 from hipolicy_jax.data.replay_buffer import ReplayBuffer
 from hipolicy_jax.policy import PolicyArgs, calibrate_thresholds, make_policy_fn, measure_entropies, policy_obs_keys
@@ -49,24 +49,59 @@ class EvalOptions:
     calib_windows: int = 128
 
 
-def default_data_path(task: str, obs_keys: tuple[str, ...], episodes: int) -> str:
-    return os.path.join("data", f"{task}_{'-'.join(obs_keys)}_{episodes}.zarr")
+def policy_camera(encoder: EncoderConfig):
+    """The env camera a policy with this encoder needs: ``image_size`` pixels square, ``num_points`` points with
+    rgb when ``point_dims == 6``; every other camera setting is the env's default. ``envs.camera.CameraConfig``."""
+    from hipolicy_jax.envs.camera import CameraConfig
+
+    return CameraConfig(height=encoder.image_size, width=encoder.image_size, num_points=encoder.num_points,
+                        point_rgb=encoder.point_dims == 6)
 
 
-def load_or_collect(task: str, obs_keys: tuple[str, ...], episodes: int, path: str, seed: int = 0,
+def default_data_path(task: str, encoder: EncoderConfig, episodes: int) -> str:
+    """``data/<task>_<obs keys>[_<camera>]_<episodes>.zarr``: the camera part (``84px``, ``512pts``, ``512pts-rgb``)
+    appears for image and point-cloud encoders, so buffers of different resolutions never collide."""
+    keys = policy_obs_keys(encoder)
+    cam = {"state": "", "image": f"_{encoder.image_size}px",
+           "pointcloud": f"_{encoder.num_points}pts" + ("-rgb" if encoder.point_dims == 6 else "")}[encoder.obs_type]
+    return os.path.join("data", f"{task}_{'-'.join(keys)}{cam}_{episodes}.zarr")
+
+
+# Which config field sets each camera key's per-frame shape (for error messages).
+_FRAME_FIELDS = {"image": "policy.encoder.image_size", "point_cloud": "policy.encoder.num_points / point_dims"}
+
+
+def check_buffer(buffer: ReplayBuffer, encoder: EncoderConfig, path: str) -> None:
+    """Raise ``ValueError`` naming the key, the expected and the actual per-frame shape if ``buffer`` lacks a key
+    the encoder reads or holds images / point clouds of another size than the encoder's."""
+    keys = policy_obs_keys(encoder)
+    missing = [k for k in (*keys, "action") if k not in buffer.data]
+    if missing:
+        raise ValueError(f"{path}: lacks keys {missing} (has {sorted(buffer.data)}); collect with those obs")
+    expected = {"image": (encoder.image_size, encoder.image_size, 3),
+                "point_cloud": (encoder.num_points, encoder.point_dims)}
+    for key in keys:
+        if key in expected and tuple(buffer.data[key].shape[1:]) != expected[key]:
+            raise ValueError(f"{path}: data/{key} has frames of shape {tuple(buffer.data[key].shape[1:])}, the "
+                             f"encoder expects {expected[key]}; set {_FRAME_FIELDS[key]} to match, or pass another "
+                             f"--data (a missing one is collected with the encoder's camera)")
+
+
+def load_or_collect(task: str, encoder: EncoderConfig, episodes: int, path: str, seed: int = 0,
                     progress: bool = True) -> ReplayBuffer:
-    """Reuse the dataset at ``path`` or collect ``episodes`` expert demos of ``task`` and save them there."""
+    """Reuse the dataset at ``path`` (checked against ``encoder``: keys and frame shapes) or collect ``episodes``
+    expert demos of ``task`` with the encoder's observations and camera (``policy_camera``) and save them there."""
     if os.path.exists(path):
         buffer = ReplayBuffer.load(path)
-        missing = [k for k in (*obs_keys, "action") if k not in buffer.data]
-        if missing:
-            raise ValueError(f"{path}: lacks keys {missing} (has {sorted(buffer.data)}); collect with those obs")
+        check_buffer(buffer, encoder, path)
         return buffer
     from hipolicy_jax.envs.demos import collect_demos
 
     if progress:
         print(f"collecting {episodes} expert demos of {task} → {path}")
-    episodes_data = collect_demos(task, episodes, jax.random.key(seed), obs_keys=obs_keys)
+    obs_keys = policy_obs_keys(encoder)
+    overrides = {} if encoder.obs_type == "state" else {"camera": policy_camera(encoder)}
+    episodes_data = collect_demos(task, episodes, jax.random.key(seed), obs_keys=obs_keys, **overrides)
     buffer = ReplayBuffer.from_episodes(episodes_data)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     buffer.save(path)
@@ -103,7 +138,7 @@ def evaluate_policy(net, params, normalizer, cfg: PolicyConfig, action_dim: int,
     policy_fn = make_policy_fn(net, cfg, action_dim, num_samples=opts.num_samples, num_steps=opts.num_steps,
                                sampler=opts.sampler)
     args = PolicyArgs(params, normalizer, None if th is None else np.asarray(th, np.float32))
-    return evaluate(policy_fn, policy_env(task, policy_obs_keys(cfg.encoder)), opts.episodes, key,
+    return evaluate(policy_fn, policy_env(task, cfg.encoder), opts.episodes, key,
                     history_len=cfg.chunk.obs_span, chunk_len=cfg.chunk.chunk_len, policy_args=args)
 
 
@@ -127,11 +162,13 @@ def write_json(path: str, obj) -> None:
 
 
 @functools.lru_cache(maxsize=16)
-def policy_env(task: str, obs_keys: tuple[str, ...] = ("state",)):
-    """The task's env computing ``obs_keys`` (one instance per setting, so compiled rollouts stay cached)."""
+def policy_env(task: str, encoder: EncoderConfig = EncoderConfig()):
+    """The task's env computing what ``encoder`` reads, with its camera (``policy_camera``); one instance per
+    setting, so compiled rollouts stay cached."""
     from hipolicy_jax import envs
 
-    return envs.make(task, obs_keys=tuple(obs_keys))
+    overrides = {} if encoder.obs_type == "state" else {"camera": policy_camera(encoder)}
+    return envs.make(task, obs_keys=policy_obs_keys(encoder), **overrides)
 
 
 def eval_key(seed: int) -> jax.Array:
@@ -161,7 +198,7 @@ def evaluate_policy_recorded(net, params, normalizer, cfg: PolicyConfig, action_
                                sampler=opts.sampler)
     th = guidance_thresholds(thresholds, cfg.chunk.num_freqs, opts.entropy_guided)
     stateful, init_fn = rollout.stateless(policy_fn, with_args=True)
-    return rollout.rollout_episodes(stateful, init_fn, policy_env(task, policy_obs_keys(cfg.encoder)),
+    return rollout.rollout_episodes(stateful, init_fn, policy_env(task, cfg.encoder),
                                     opts.episodes, key, history_len=cfg.chunk.obs_span,
                                     chunk_len=cfg.chunk.chunk_len, policy_args=PolicyArgs(params, normalizer, th))
 

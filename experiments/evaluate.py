@@ -148,13 +148,12 @@ def save_rollout_video(run: Run, result, recording, path: str, *, backend: str =
                        width: int = 320) -> tuple[str, int]:
     """Render the first successful episode (else episode 0) of a recorded rollout → (path, episode index)."""
     from hipolicy_jax.envs import video
-    from hipolicy_jax.policy import policy_obs_keys
 
     success = np.asarray(result.success)
     episode = int(np.argmax(success)) if success.any() else 0
     cfg = run.policy.cfg
     traj = video.trajectory_from_rollout(result, recording, episode, cfg.chunk.chunk_len)
-    env = policy_env(run.task, policy_obs_keys(cfg.encoder))
+    env = policy_env(run.task, cfg.encoder)
     frames = video.render_frames(env, traj, height=height, width=width, backend=backend)
     video.save_video(video.annotate_frames(frames, traj), path, 1.0 / env.control_dt)
     return path, episode

@@ -39,7 +39,6 @@ from experiments.common import (CPU_POLICY, CPU_TRAIN, TASK_PRECISE, EvalOptions
                                 eval_key, eval_summary, evaluate_policy_recorded, load_run, read_calibration,
                                 read_json, run_action_dim, write_json)
 from hipolicy_jax.config import (ModelConfig, PolicyConfig, SamplingConfig, TrainConfig, replace)
-from hipolicy_jax.policy import policy_obs_keys
 
 TaskName = Literal["press_button", "latch_door", "stack_cubes", "pick_place"]
 ObsName = Literal["state", "image", "pointcloud"]
@@ -221,8 +220,7 @@ def train_args(args: PaperArgs, task: str, obs_type: str, changes, seed: int):
 
     b = BUDGETS[args.budget]
     policy = replace(b.policy, **{**OBS_CHANGES[obs_type], **dict(changes)})
-    data = os.path.join(args.data, os.path.basename(default_data_path(task, policy_obs_keys(policy.encoder),
-                                                                      b.demos)))
+    data = os.path.join(args.data, os.path.basename(default_data_path(task, policy.encoder, b.demos)))
     return TrainArgs(task=task, out=run_dir(args, task, obs_type, changes, seed), data=data, episodes=b.demos,
                      val_ratio=b.val_ratio, policy=policy, train=dataclasses.replace(b.train, seed=seed),
                      eval=eval_options(args), progress=args.progress, final_eval=False)

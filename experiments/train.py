@@ -17,11 +17,10 @@ import jax
 import numpy as np
 import tyro
 
-from experiments.common import (CPU_POLICY, CPU_TRAIN, EvalOptions, build_datasets, calibrate, default_data_path,
-                                eval_summary, evaluate_policy, load_or_collect, write_json)
+from experiments.common import (CPU_POLICY, CPU_TRAIN, EvalOptions, build_datasets, calibrate, check_buffer,
+                                default_data_path, eval_summary, evaluate_policy, load_or_collect, write_json)
 from hipolicy_jax.config import PolicyConfig, TrainConfig
 from hipolicy_jax.models.policy_net import PolicyNet
-from hipolicy_jax.policy import policy_obs_keys
 from hipolicy_jax.trainer import fit, run_keys
 
 
@@ -29,7 +28,7 @@ from hipolicy_jax.trainer import fit, run_keys
 class TrainArgs:
     task: str = "press_button"
     out: str = ""  # default runs/<task>_<obs_type>_seed<seed>
-    data: str = ""  # default data/<task>_<obs keys>_<episodes>.zarr (collected when missing)
+    data: str = ""  # default data/<task>_<obs keys>[_<camera>]_<episodes>.zarr (collected when missing)
     episodes: int = 100
     val_ratio: float = 0.1
     policy: PolicyConfig = CPU_POLICY
@@ -45,7 +44,7 @@ class TrainArgs:
         return self.out or os.path.join("runs", f"{self.task}_{self.policy.encoder.obs_type}_seed{self.train.seed}")
 
     def data_path(self) -> str:
-        return self.data or default_data_path(self.task, policy_obs_keys(self.policy.encoder), self.episodes)
+        return self.data or default_data_path(self.task, self.policy.encoder, self.episodes)
 
 
 def dry_run(args: TrainArgs) -> dict:
@@ -63,6 +62,7 @@ def dry_run(args: TrainArgs) -> dict:
               f"{args.task}")
         return info
     buffer = ReplayBuffer.load(path)
+    check_buffer(buffer, args.policy.encoder, path)
     train_ds, val_ds = build_datasets(buffer, args.policy, args.val_ratio, args.train.seed)
     if len(train_ds) < args.train.batch_size:
         raise ValueError(f"train.batch_size: {args.train.batch_size} exceeds the {len(train_ds)} training windows")
@@ -84,7 +84,7 @@ def main(args: TrainArgs) -> dict:
     out = args.out_dir()
     os.makedirs(out, exist_ok=True)
     t0 = time.perf_counter()
-    buffer = load_or_collect(args.task, policy_obs_keys(args.policy.encoder), args.episodes, args.data_path(),
+    buffer = load_or_collect(args.task, args.policy.encoder, args.episodes, args.data_path(),
                              seed=args.train.seed, progress=args.progress)
     train_ds, val_ds = build_datasets(buffer, args.policy, args.val_ratio, args.train.seed)
     print(f"data: {buffer.num_episodes} episodes, {buffer.num_frames} frames; {len(train_ds)} train / "

@@ -248,3 +248,31 @@ def test_paper_entropy_smoke_reuses_trained_run(tiny):
     assert by["w/o EG"]["stride1_frac"] == 1.0 and by["DP"]["stride1_frac"] == 1.0
     evals = _load(os.path.join(run, "paper_evals.json"))
     assert len(evals) == 2  # with and without entropy guidance, cached
+
+
+def test_policy_camera_env_and_data_follow_the_encoder(tmp_path):
+    """The env camera, the default demo path and the buffer check all follow the encoder config (image size, point
+    count, rgb), so a non-default encoder trains on demos of its own resolution."""
+    from experiments.common import check_buffer, default_data_path, policy_env
+    from hipolicy_jax.config import EncoderConfig
+    from hipolicy_jax.data.replay_buffer import ReplayBuffer
+
+    img = EncoderConfig(obs_type="image", image_size=40, crop_size=36)
+    pts = EncoderConfig(obs_type="pointcloud", num_points=96, point_dims=6)
+    assert policy_env(TASK, img).obs_shapes == {"state": policy_env(TASK).obs_shapes["state"], "image": (40, 40, 3)}
+    assert policy_env(TASK, pts).obs_shapes["point_cloud"] == (96, 6)
+    assert policy_env(TASK, img) is policy_env(TASK, img)  # cached: compiled rollouts are reused
+    assert default_data_path(TASK, EncoderConfig(), 100) == os.path.join("data", f"{TASK}_state_100.zarr")
+    assert default_data_path(TASK, img, 7).endswith(f"{TASK}_state-image_40px_7.zarr")
+    assert default_data_path(TASK, pts, 7).endswith(f"{TASK}_state-point_cloud_96pts-rgb_7.zarr")
+
+    def buffer(points: int, dims: int) -> ReplayBuffer:
+        ep = {"state": np.zeros((5, 4), np.float32), "action": np.zeros((5, 4), np.float32),
+              "point_cloud": np.zeros((5, points, dims), np.float32)}
+        return ReplayBuffer.from_episodes([ep])
+
+    check_buffer(buffer(96, 6), pts, "ok.zarr")
+    with pytest.raises(ValueError, match=r"bad.zarr: data/point_cloud .*\(512, 3\).*\(96, 6\).*num_points"):
+        check_buffer(buffer(512, 3), pts, "bad.zarr")
+    with pytest.raises(ValueError, match=r"lacks keys \['image'\]"):
+        check_buffer(buffer(96, 6), img, "img.zarr")
