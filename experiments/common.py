@@ -50,12 +50,14 @@ class EvalOptions:
 
 
 def policy_camera(encoder: EncoderConfig):
-    """The env camera a policy with this encoder needs: ``image_size`` pixels square, ``num_points`` points with
-    rgb when ``point_dims == 6``; every other camera setting is the env's default. ``envs.camera.CameraConfig``."""
+    """The env camera a policy with this encoder needs (``envs.camera.CameraConfig``): images of ``image_size``
+    pixels square for an image encoder; ``num_points`` points, with rgb when ``point_dims == 6``, for a point-cloud
+    encoder (cast from the default camera resolution). Every other setting is the camera's default."""
     from hipolicy_jax.envs.camera import CameraConfig
 
-    return CameraConfig(height=encoder.image_size, width=encoder.image_size, num_points=encoder.num_points,
-                        point_rgb=encoder.point_dims == 6)
+    if encoder.obs_type == "image":
+        return CameraConfig(height=encoder.image_size, width=encoder.image_size)
+    return CameraConfig(num_points=encoder.num_points, point_rgb=encoder.point_dims == 6)
 
 
 def default_data_path(task: str, encoder: EncoderConfig, episodes: int) -> str:

@@ -19,7 +19,8 @@ import tyro
 
 from experiments.common import (CPU_POLICY, CPU_TRAIN, EvalOptions, build_datasets, calibrate, check_buffer,
                                 default_data_path, eval_summary, evaluate_policy, load_or_collect, write_json)
-from hipolicy_jax.config import PolicyConfig, TrainConfig
+from hipolicy_jax.config import PolicyConfig, TrainConfig, replace
+from hipolicy_jax.envs.base import PROPRIO_DIM
 from hipolicy_jax.models.policy_net import PolicyNet
 from hipolicy_jax.trainer import fit, run_keys
 
@@ -39,6 +40,13 @@ class TrainArgs:
     num_devices: int | None = None  # data-parallel devices (default: all local devices)
     final_eval: bool = True  # evaluate the trained policy at the end (paper tables evaluate on their own: with
     # --eval.every 0 and --no-final-eval nothing is rolled out during training)
+    privileged_state: bool = False  # image / point-cloud policies also read the task state (object poses); by default
+    # they read proprioception only (policy.encoder.state_dims = 4, as DP / DP3), unless state_dims is set
+
+    def __post_init__(self):
+        enc = self.policy.encoder
+        if enc.obs_type != "state" and enc.state_dims is None and not self.privileged_state:
+            object.__setattr__(self, "policy", replace(self.policy, **{"encoder.state_dims": PROPRIO_DIM}))
 
     def out_dir(self) -> str:
         return self.out or os.path.join("runs", f"{self.task}_{self.policy.encoder.obs_type}_seed{self.train.seed}")

@@ -95,6 +95,9 @@ class EncoderConfig:
     obs_type: ObsType = "state"
     state_hidden: tuple[int, ...] = (256, 256)  # low-dim MLP hidden sizes
     state_out: int = 64  # per-frame feature size of the state MLP
+    # read only the first state_dims features of state (None: all). The MJX tasks' first 4 are proprioception (TCP
+    # xyz, gripper opening), the rest object poses: vision policies use 4 and see objects only through the camera
+    state_dims: int | None = None
     # image encoder (ResNet-18 style trunk with GroupNorm, spatial softmax)
     image_size: int = 84  # input H = W
     crop_size: int = 76  # random crop in training, centre crop at evaluation
@@ -113,6 +116,8 @@ class EncoderConfig:
                  f"must be in (0, image_size={self.image_size}], got {self.crop_size}")
         _require(self.point_dims in (3, 6), "encoder.point_dims", f"must be 3 (xyz) or 6 (xyz+rgb), got {self.point_dims}")
         _require(self.num_points >= 1, "encoder.num_points", f"must be >= 1, got {self.num_points}")
+        _require(self.state_dims is None or self.state_dims >= 1, "encoder.state_dims",
+                 f"must be None (all) or >= 1, got {self.state_dims}")
         _require(len(self.image_channels) >= 1, "encoder.image_channels", "needs at least one stage")
         _require(self.num_keypoints >= 1, "encoder.num_keypoints", f"must be >= 1, got {self.num_keypoints}")
 

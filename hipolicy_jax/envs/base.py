@@ -17,7 +17,8 @@ One control step (``control_dt``, 10 Hz by default) runs ``n_substeps`` physics 
 
 Observations (``State.obs``)::
 
-    state        (D,)        float32   TCP xyz, gripper opening (m), then task-specific object poses / joint angles
+    state        (D,)        float32   TCP xyz, gripper opening (m) (the first PROPRIO_DIM = 4: proprioception), then
+                                       task-specific object poses / joint angles
     image        (H, W, 3)   uint8     optional, jitted ray-cast camera (see camera.py)
     depth        (H, W)      float32   optional
     point_cloud  (P, 3|6)    float32   optional
@@ -45,6 +46,7 @@ FINGER_OPEN = 0.045  # finger half-opening (m) at gripper command 0; joint range
 FINGER_RADIUS = 0.008  # capsule radius of the fingers (m)
 FINGER_BOTTOM = 0.018  # lowest point of the fingers below the TCP (m)
 ACTION_DIM = 4
+PROPRIO_DIM = 4  # leading features of the state observation that are proprioception (TCP xyz, gripper opening)
 
 
 @struct.dataclass
@@ -207,7 +209,7 @@ class MjxEnv:
 
     @property
     def state_dim(self) -> int:
-        return 4 + self.task_state_dim
+        return PROPRIO_DIM + self.task_state_dim
 
     @property
     def obs_shapes(self) -> dict[str, tuple[int, ...]]:

@@ -186,7 +186,7 @@ class ObsEncoder(nn.Module):
 
     ``obs`` is a dict of arrays with leading dims ``(B, M, L_h)``:
 
-    * ``state``: ``(B, M, L_h, D)``, always;
+    * ``state``: ``(B, M, L_h, D)``, always (only the first ``cfg.state_dims`` features are read when set);
     * ``image``: ``(B, M, L_h, image_size, image_size, 3)`` in [-1, 1] when ``cfg.obs_type == "image"``;
     * ``point_cloud``: ``(B, M, L_h, P, point_dims)`` when ``cfg.obs_type == "pointcloud"``.
 
@@ -232,6 +232,9 @@ class ObsEncoder(nn.Module):
                 raise ValueError(f"obs[{key!r}]: expected shape {expected} (rank {rank}), got {shape}")
             if tail is not None and any(t is not None and t != s for t, s in zip(tail, shape[-len(tail):])):
                 raise ValueError(f"obs[{key!r}]: expected shape {expected}, got {shape}")
+            if key == "state" and cfg.state_dims is not None and shape[-1] < cfg.state_dims:
+                raise ValueError(f"obs['state']: encoder.state_dims={cfg.state_dims} reads the first "
+                                 f"{cfg.state_dims} features, got shape {shape} with D={shape[-1]}")
             if lead is None:
                 lead = shape[:3]
             elif shape[:3] != lead:
@@ -247,7 +250,8 @@ class ObsEncoder(nn.Module):
         keys = ("state", {"image": "image", "pointcloud": "point_cloud"}.get(cfg.obs_type))
         # (B, U, ...): one entry per distinct time step
         frames = {k: obs[k].reshape((b, m * lh) + obs[k].shape[3:])[:, first] for k in keys if k is not None}
-        feats = [StateEncoder(cfg.state_hidden, cfg.state_out, name="state")(frames["state"])]
+        state = frames["state"] if cfg.state_dims is None else frames["state"][..., :cfg.state_dims]
+        feats = [StateEncoder(cfg.state_hidden, cfg.state_out, name="state")(state)]
         if cfg.obs_type == "image":
             feats.append(ImageEncoder(cfg.image_channels, cfg.num_keypoints, cfg.image_out, cfg.crop_size,
                                       name="image")(frames["image"], train=train))
