@@ -276,3 +276,20 @@ def test_policy_camera_env_and_data_follow_the_encoder(tmp_path):
         check_buffer(buffer(512, 3), pts, "bad.zarr")
     with pytest.raises(ValueError, match=r"lacks keys \['image'\]"):
         check_buffer(buffer(96, 6), img, "img.zarr")
+
+
+def test_train_args_vision_policies_read_proprioception_only():
+    """An image / point-cloud policy picked on the command line reads the state's proprioception only (as DP / DP3),
+    unless --privileged-state or an explicit state_dims says otherwise; state policies read everything."""
+    from experiments.train import TrainArgs
+    from hipolicy_jax.envs.base import PROPRIO_DIM
+
+    def parse(*argv):
+        return tyro.cli(TrainArgs, args=list(argv)).policy.encoder.state_dims
+
+    assert parse() is None
+    assert parse("--policy.encoder.obs-type", "pointcloud") == PROPRIO_DIM == 4
+    assert parse("--policy.encoder.obs-type", "image", "--privileged-state") is None
+    assert parse("--policy.encoder.obs-type", "image", "--policy.encoder.state-dims", "7") == 7
+    assert paper.train_args(paper.MainArgs(), TASK, "pointcloud", (), 0).policy.encoder.state_dims == PROPRIO_DIM
+    assert paper.train_args(paper.MainArgs(), TASK, "pointcloud", (), 0).policy.encoder.num_points == 128

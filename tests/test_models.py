@@ -458,6 +458,24 @@ def test_obs_encoder_encodes_each_distinct_frame_once(obs_type):
         ObsEncoder(cfg.encoder, frame_offsets=offsets[:2]).apply(variables, obs)
 
 
+def test_obs_encoder_state_dims_reads_only_leading_features():
+    """``encoder.state_dims = k``: the state MLP's kernel has k inputs and the features beyond k change nothing (a
+    point-cloud policy sees objects only through the camera); a state with fewer than k features is rejected."""
+    cfg = tiny_cfg("pointcloud", **{"encoder.state_dims": 4})
+    obs = make_obs(cfg)
+    enc = ObsEncoder(cfg.encoder)
+    variables = quick_init(enc, obs)
+    assert variables["params"]["state"]["dense_0"]["kernel"].shape[0] == 4
+    moved = dict(obs, state=obs["state"].at[..., 4:].add(3.0))
+    np.testing.assert_array_equal(enc.apply(variables, moved), enc.apply(variables, obs))
+    touched = dict(obs, state=obs["state"].at[..., 3].add(3.0))
+    assert not np.allclose(enc.apply(variables, touched), enc.apply(variables, obs))
+    with pytest.raises(ValueError, match=r"encoder.state_dims=4 .*D=3"):
+        enc.apply(variables, dict(obs, state=obs["state"][..., :3]))
+    with pytest.raises(ValueError, match="encoder.state_dims"):
+        tiny_cfg(**{"encoder.state_dims": 0})
+
+
 @pytest.mark.parametrize(
     "obs_type, key, bad",
     [
