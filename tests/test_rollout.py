@@ -67,6 +67,28 @@ def test_policy_chunk_shape_is_checked():
 
     with pytest.raises(ValueError, match="chunk_len"):
         rollout.evaluate(bad, env, 2, jax.random.PRNGKey(0), history_len=HIST, chunk_len=CHUNK)
+    with pytest.raises(ValueError, match="chunk_len"):  # a failed check is not cached as passed
+        rollout.evaluate(bad, env, 2, jax.random.PRNGKey(0), history_len=HIST, chunk_len=CHUNK)
+
+
+def test_policy_shape_check_traces_once_per_argument_shapes():
+    """The abstract shape check re-traces the policy only when the shapes of its traced arguments change."""
+    env = envs.make("press_button")
+    traces = []
+
+    def scaled(obs_history, key, state, args):
+        traces.append(1)
+        return rollout.PolicyOutput(actions=jnp.zeros((CHUNK, 4)) * args["scale"].sum(), stride=jnp.int32(1),
+                                    entropy=jnp.zeros(())), state
+
+    def check(args):
+        rollout.check_policy_shape(env, scaled, rollout._no_state, args, history_len=HIST, chunk_len=CHUNK)
+
+    check({"scale": np.ones(3, np.float32)})
+    check({"scale": jnp.full(3, 2.0)})  # same shape and dtype: cached
+    assert len(traces) == 1
+    check({"scale": np.ones(5, np.float32)})
+    assert len(traces) == 2
 
 
 @pytest.mark.slow

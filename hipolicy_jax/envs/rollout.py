@@ -168,13 +168,22 @@ def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *
 
 def check_policy_shape(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, policy_args, *,
                        history_len: int, chunk_len: int) -> None:
-    """Check the policy's chunk shape once, abstractly (no compile)."""
+    """Check the policy's chunk shape abstractly (no compile), once per setting and shapes of ``policy_args``."""
+    leaves, treedef = jax.tree.flatten(policy_args)
+    signature = tuple((tuple(jnp.shape(x)), x.dtype if hasattr(x, "dtype") else jnp.result_type(x)) for x in leaves)
+    _check_policy_shape(env, policy_fn, init_fn, treedef, signature, history_len, chunk_len)
+
+
+@functools.lru_cache(maxsize=64)
+def _check_policy_shape(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, treedef, signature,
+                        history_len: int, chunk_len: int) -> None:
     def probe(key, args):
         state = env.reset(key)
         hist = init_history(state.obs, history_len)
         return policy_fn(hist, key, init_fn(state.obs, key), args)[0]
 
-    out = jax.eval_shape(probe, jax.random.PRNGKey(0), policy_args)
+    args = jax.tree.unflatten(treedef, [jax.ShapeDtypeStruct(shape, dtype) for shape, dtype in signature])
+    out = jax.eval_shape(probe, jax.random.PRNGKey(0), args)
     if out.actions.shape != (chunk_len, env.action_dim):
         raise ValueError(f"policy_fn: actions must have shape (chunk_len={chunk_len}, A={env.action_dim}), "
                          f"got {out.actions.shape}")
