@@ -71,11 +71,12 @@ def device_description() -> str:
     return getattr(dev, "device_kind", dev.platform)
 
 
-def bench_config(size: str, obs: str) -> PolicyConfig:
-    """The benchmark ``PolicyConfig`` of one size (``SIZES``) and observation type (state | image | pointcloud)."""
+def bench_config(size: str, obs: str, **changes) -> PolicyConfig:
+    """The benchmark ``PolicyConfig`` of one size (``SIZES``) and observation type (state | image | pointcloud),
+    plus dotted-field ``changes`` (``replace``'s keys)."""
     if size not in SIZES:
         raise ValueError(f"size: must be one of {sorted(SIZES)}, got {size!r}")
-    return replace(PolicyConfig(), **{"encoder.obs_type": obs, **SIZES[size]})
+    return replace(PolicyConfig(), **{"encoder.obs_type": obs, **SIZES[size], **changes})
 
 
 class BenchPolicy(NamedTuple):
@@ -105,10 +106,11 @@ def example_obs(cfg: PolicyConfig, batch: int, key: jax.Array) -> dict[str, jax.
 
 
 def make_bench_policy(size: str, obs_type: str, seed: int = 0, state_dim: int = STATE_DIM,
-                      action_dim: int = ACTION_DIM) -> BenchPolicy:
+                      action_dim: int = ACTION_DIM, **changes) -> BenchPolicy:
     """Initialise ``PolicyNet`` for ``bench_config(size, obs_type)`` with a normaliser fitted on uniform [0, 1) data
-    of ``state_dim`` / ``action_dim`` features (so raw observations in [0, 1) map to [-1, 1))."""
-    cfg = bench_config(size, obs_type)
+    of ``state_dim`` / ``action_dim`` features (so raw observations in [0, 1) map to [-1, 1)); ``changes`` go to
+    ``bench_config``."""
+    cfg = bench_config(size, obs_type, **changes)
     obs = example_obs(cfg, 1, jax.random.key(seed))
     if state_dim != STATE_DIM:
         obs["state"] = jax.random.uniform(jax.random.key(seed), obs["state"].shape[:-1] + (state_dim,))

@@ -2,6 +2,7 @@
 
     python -m benchmarks.train_step                              # CPU default: cpu size, state obs, batch 128
     python -m benchmarks.train_step --sizes cpu paper --obs state image pointcloud     # GPU grid
+    python -m benchmarks.train_step --obs pointcloud --num-points 128 512 --batch 64   # DP3 point budgets
 
 The step is the real one (AdamW + cosine schedule + EMA, the train state donated) on a synthetic normalised batch
 of ``--batch`` windows; the first call's time (trace + compile + one step) and the ``lower().compile()`` time are
@@ -28,6 +29,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     cpu = device_kind() == "cpu"
     p = base_parser(NAME, __doc__, grid=True)
     p.add_argument("--batch", type=int, default=128)
+    p.add_argument("--num-points", type=int, nargs="+", default=[512], help="point-cloud sizes (pointcloud rows)")
     p.add_argument("--repeats", type=int, default=20)
     p.add_argument("--row-budget-s", type=float, default=30.0 if cpu else None)
     p.add_argument("--quick", action="store_true", help="cpu size, state obs, 5 repeats")
@@ -45,9 +47,9 @@ def synthetic_batch(cfg, batch: int, key: jax.Array) -> dict:
     return {"obs": obs, "action": action}
 
 
-def bench_config_row(size: str, obs: str, args) -> dict:
-    """Compile time, first-step time and steady-state step latency of one config."""
-    policy = make_bench_policy(size, obs)
+def bench_config_row(size: str, obs: str, args, points: int | None = None) -> dict:
+    """Compile time, first-step time and steady-state step latency of one config (``points``: point-cloud size)."""
+    policy = make_bench_policy(size, obs, **({} if points is None else {"encoder.num_points": points}))
     train_cfg = TrainConfig(batch_size=args.batch, num_steps=10_000, warmup_steps=10)
     tx = make_optimizer(train_cfg)
     step = make_train_step(policy.net, policy.cfg, train_cfg, tx)
@@ -69,7 +71,7 @@ def bench_config_row(size: str, obs: str, args) -> dict:
         retraces = step._cache_size() - cache
     stats = latency_stats(times)
     loss = float(one(0))
-    return {"size": size, "obs": obs, "batch": args.batch, "params": param_count(policy.params), **stats,
+    return {"size": size, "obs": obs, "points": points, "batch": args.batch, "params": param_count(policy.params), **stats,
             "steps_per_s": 1.0 / stats["median_s"], "samples_per_s": args.batch / stats["median_s"],
             "compile_s": compile_s, "first_step_s": first, "retraces": retraces, "final_loss": loss,
             "loss_finite": bool(np.isfinite(loss))}
@@ -79,16 +81,16 @@ def main(argv=None) -> dict:
     args = parse_args(argv)
     rows = []
     for size in args.sizes:
-        for obs in args.obs:
-            r = bench_config_row(size, obs, args)
+        for obs, points in [(o, p) for o in args.obs for p in (args.num_points if o == "pointcloud" else [None])]:
+            r = bench_config_row(size, obs, args, points)
             rows.append(r)
-            print(f"[{size}/{obs}] batch {r['batch']}: {r['median_s'] * 1e3:.1f} ms/step, {r['steps_per_s']:.2f} "
+            print(f"[{size}/{obs}{'' if points is None else f'/{points} points'}] batch {r['batch']}: {r['median_s'] * 1e3:.1f} ms/step, {r['steps_per_s']:.2f} "
                   f"steps/s, {r['samples_per_s']:.0f} samples/s, compile {r['compile_s']:.1f} s, first step "
                   f"{r['first_step_s']:.1f} s", flush=True)
     table = markdown_table(
-        ["size", "obs", "params", "batch", "median ms", "p90 ms", "steps/s", "samples/s", "compile s",
+        ["size", "obs", "points", "params", "batch", "median ms", "p90 ms", "steps/s", "samples/s", "compile s",
          "first step s"],
-        [[r["size"], r["obs"], f"{r['params']:,}", r["batch"], r["median_s"] * 1e3, r["p90_s"] * 1e3,
+        [[r["size"], r["obs"], "–" if r["points"] is None else r["points"], f"{r['params']:,}", r["batch"], r["median_s"] * 1e3, r["p90_s"] * 1e3,
           r["steps_per_s"], r["samples_per_s"], r["compile_s"], r["first_step_s"]] for r in rows])
     return report_rows(NAME, argv, args, rows, table)
 

@@ -40,11 +40,15 @@ def test_sampling_benchmark(tmp_path):
 
 
 def test_train_step_benchmark(tmp_path):
-    train_step.main(["--sizes", "tiny", "--obs", "state", "--batch", "8", "--repeats", "2",
-                     "--out-dir", str(tmp_path)])
-    (row,) = _load(tmp_path, "train_step")["rows"]
-    _finite(row, ["median_s", "p90_s", "steps_per_s", "samples_per_s", "compile_s", "first_step_s", "final_loss"])
-    assert row["retraces"] == 0 and row["loss_finite"]
+    train_step.main(["--sizes", "tiny", "--obs", "state", "pointcloud", "--num-points", "16", "32", "--batch", "8",
+                     "--repeats", "2", "--out-dir", str(tmp_path)])
+    rows = _load(tmp_path, "train_step")["rows"]
+    assert [(r["obs"], r["points"]) for r in rows] == [("state", None), ("pointcloud", 16), ("pointcloud", 32)]
+    assert rows[1]["params"] == rows[2]["params"] > rows[0]["params"]  # the point encoder ignores the point count
+    for row in rows:
+        _finite(row, ["median_s", "p90_s", "steps_per_s", "samples_per_s", "compile_s", "first_step_s",
+                      "final_loss"])
+        assert row["retraces"] == 0 and row["loss_finite"]
 
 
 def test_rollout_benchmark(tmp_path):
