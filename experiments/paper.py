@@ -85,8 +85,9 @@ OBS_CHANGES: dict[str, dict[str, Any]] = {
     "pointcloud": {"encoder.obs_type": "pointcloud", "encoder.state_dims": PROPRIO_DIM,
                    "diffusion.prediction_type": "sample"},
 }
-# Changes of an observation type on one budget. On the cpu budget DP3 sees 128 points (a point-cloud train step at
-# batch 64 takes 0.42 s with 128 points, 1.33 s with 512 on 2 cores); press_button's view holds ~160 points.
+# Changes of an observation type on one budget. On the cpu budget DP3 sees 128 points: a point-cloud train step at
+# batch 64 takes 0.43 s with 128 points, 1.51 s with 512 on 2 cores (benchmarks/results/train_step_cpu.json);
+# press_button's camera view holds ~160 points in the crop box.
 BUDGET_OBS_CHANGES: dict[tuple[str, str], dict[str, Any]] = {("cpu", "pointcloud"): {"encoder.num_points": 128}}
 BASELINE_NAME = {"state": "DP", "image": "DP (image)", "pointcloud": "DP3"}
 
