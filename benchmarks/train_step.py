@@ -71,7 +71,8 @@ def bench_config_row(size: str, obs: str, args, points: int | None = None) -> di
         retraces = step._cache_size() - cache
     stats = latency_stats(times)
     loss = float(one(0))
-    return {"size": size, "obs": obs, "points": points, "batch": args.batch, "params": param_count(policy.params), **stats,
+    return {"size": size, "obs": obs, "points": points, "batch": args.batch, "params": param_count(policy.params),
+            **stats,
             "steps_per_s": 1.0 / stats["median_s"], "samples_per_s": args.batch / stats["median_s"],
             "compile_s": compile_s, "first_step_s": first, "retraces": retraces, "final_loss": loss,
             "loss_finite": bool(np.isfinite(loss))}
@@ -84,14 +85,16 @@ def main(argv=None) -> dict:
         for obs, points in [(o, p) for o in args.obs for p in (args.num_points if o == "pointcloud" else [None])]:
             r = bench_config_row(size, obs, args, points)
             rows.append(r)
-            print(f"[{size}/{obs}{'' if points is None else f'/{points} points'}] batch {r['batch']}: {r['median_s'] * 1e3:.1f} ms/step, {r['steps_per_s']:.2f} "
+            name = f"{size}/{obs}" + ("" if points is None else f"/{points} points")
+            print(f"[{name}] batch {r['batch']}: {r['median_s'] * 1e3:.1f} ms/step, {r['steps_per_s']:.2f} "
                   f"steps/s, {r['samples_per_s']:.0f} samples/s, compile {r['compile_s']:.1f} s, first step "
                   f"{r['first_step_s']:.1f} s", flush=True)
     table = markdown_table(
         ["size", "obs", "points", "params", "batch", "median ms", "p90 ms", "steps/s", "samples/s", "compile s",
          "first step s"],
-        [[r["size"], r["obs"], "–" if r["points"] is None else r["points"], f"{r['params']:,}", r["batch"], r["median_s"] * 1e3, r["p90_s"] * 1e3,
-          r["steps_per_s"], r["samples_per_s"], r["compile_s"], r["first_step_s"]] for r in rows])
+        [[r["size"], r["obs"], "–" if r["points"] is None else r["points"], f"{r['params']:,}", r["batch"],
+          r["median_s"] * 1e3, r["p90_s"] * 1e3, r["steps_per_s"], r["samples_per_s"], r["compile_s"],
+          r["first_step_s"]] for r in rows])
     return report_rows(NAME, argv, args, rows, table)
 
 

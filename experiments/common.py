@@ -49,15 +49,18 @@ class EvalOptions:
     calib_windows: int = 128
 
 
-def policy_camera(encoder: EncoderConfig):
-    """The env camera a policy with this encoder needs (``envs.camera.CameraConfig``): images of ``image_size``
-    pixels square for an image encoder; ``num_points`` points, with rgb when ``point_dims == 6``, for a point-cloud
-    encoder (cast from the default camera resolution). Every other setting is the camera's default."""
+def policy_env_kwargs(encoder: EncoderConfig) -> dict:
+    """Env settings (``envs.make`` / ``collect_demos`` keywords) for a policy with this encoder: the ``obs_keys`` it
+    reads and, for vision, the ``camera`` (``envs.camera.CameraConfig``): images of ``image_size`` pixels square, or
+    ``num_points`` points (with rgb when ``point_dims == 6``) cast from the default camera resolution."""
     from hipolicy_jax.envs.camera import CameraConfig
 
+    kwargs: dict = {"obs_keys": policy_obs_keys(encoder)}
     if encoder.obs_type == "image":
-        return CameraConfig(height=encoder.image_size, width=encoder.image_size)
-    return CameraConfig(num_points=encoder.num_points, point_rgb=encoder.point_dims == 6)
+        kwargs["camera"] = CameraConfig(height=encoder.image_size, width=encoder.image_size)
+    elif encoder.obs_type == "pointcloud":
+        kwargs["camera"] = CameraConfig(num_points=encoder.num_points, point_rgb=encoder.point_dims == 6)
+    return kwargs
 
 
 def default_data_path(task: str, encoder: EncoderConfig, episodes: int) -> str:
@@ -92,7 +95,7 @@ def check_buffer(buffer: ReplayBuffer, encoder: EncoderConfig, path: str) -> Non
 def load_or_collect(task: str, encoder: EncoderConfig, episodes: int, path: str, seed: int = 0,
                     progress: bool = True) -> ReplayBuffer:
     """Reuse the dataset at ``path`` (checked against ``encoder``: keys and frame shapes) or collect ``episodes``
-    expert demos of ``task`` with the encoder's observations and camera (``policy_camera``) and save them there."""
+    expert demos of ``task`` with the encoder's observations and camera (``policy_env_kwargs``) and save them."""
     if os.path.exists(path):
         buffer = ReplayBuffer.load(path)
         check_buffer(buffer, encoder, path)
@@ -101,9 +104,7 @@ def load_or_collect(task: str, encoder: EncoderConfig, episodes: int, path: str,
 
     if progress:
         print(f"collecting {episodes} expert demos of {task} → {path}")
-    obs_keys = policy_obs_keys(encoder)
-    overrides = {} if encoder.obs_type == "state" else {"camera": policy_camera(encoder)}
-    episodes_data = collect_demos(task, episodes, jax.random.key(seed), obs_keys=obs_keys, **overrides)
+    episodes_data = collect_demos(task, episodes, jax.random.key(seed), **policy_env_kwargs(encoder))
     buffer = ReplayBuffer.from_episodes(episodes_data)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     buffer.save(path)
@@ -165,12 +166,11 @@ def write_json(path: str, obj) -> None:
 
 @functools.lru_cache(maxsize=16)
 def policy_env(task: str, encoder: EncoderConfig = EncoderConfig()):
-    """The task's env computing what ``encoder`` reads, with its camera (``policy_camera``); one instance per
+    """The task's env computing what ``encoder`` reads, with its camera (``policy_env_kwargs``); one instance per
     setting, so compiled rollouts stay cached."""
     from hipolicy_jax import envs
 
-    overrides = {} if encoder.obs_type == "state" else {"camera": policy_camera(encoder)}
-    return envs.make(task, obs_keys=policy_obs_keys(encoder), **overrides)
+    return envs.make(task, **policy_env_kwargs(encoder))
 
 
 def eval_key(seed: int) -> jax.Array:

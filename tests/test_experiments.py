@@ -250,7 +250,7 @@ def test_paper_entropy_smoke_reuses_trained_run(tiny):
     assert len(evals) == 2  # with and without entropy guidance, cached
 
 
-def test_policy_camera_env_and_data_follow_the_encoder(tmp_path):
+def test_env_camera_and_data_follow_the_encoder(tmp_path):
     """The env camera, the default demo path and the buffer check all follow the encoder config (image size, point
     count, rgb), so a non-default encoder trains on demos of its own resolution."""
     from experiments.common import check_buffer, default_data_path, policy_env
