@@ -32,6 +32,7 @@ from benchmarks.common import base_parser, make_bench_policy, markdown_table, re
 from hipolicy_jax.config import TrainConfig, replace
 from hipolicy_jax.models import unet
 from hipolicy_jax.models.policy_net import PolicyNet, init_policy_params
+from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.sampling import sample
 from hipolicy_jax.training import init_train_state, make_optimizer, make_train_step
 
@@ -103,9 +104,9 @@ def compiled_calls(size: str, strides, chunk_len: int, args):
             step = make_train_step(net, cfg, train_cfg, tx)
             fresh = lambda: init_train_state(jax.tree.map(jnp.copy, params), tx)  # noqa: E731 (steps donate it)
             holder = {"state": fresh()}
+            inference = InferenceConfig(num_samples=args.num_samples, sampler="ddim", num_steps=args.ddim_steps)
             sampler = jax.jit(lambda p, o, k: sample(p, base.normalizer, o, k, net=net, cfg=cfg,
-                                                     action_dim=action_dim, num_samples=args.num_samples,
-                                                     num_steps=args.ddim_steps, sampler="ddim").chunks)
+                                                     action_dim=action_dim, inference=inference).chunks)
             # trace + compile inside the context; later calls reuse the executable
             _, metrics = step(fresh(), batch, jax.random.key(3))
             outputs["train"][variant] = np.asarray(metrics["loss"])

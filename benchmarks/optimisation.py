@@ -2,7 +2,7 @@
 
     python -m benchmarks.optimisation                 # CPU default: cpu size, state obs, DDIM 10 + DDPM 100, N 1/100
 
-Variants, all through ``sampling.sample_jit`` on the same parameters and keys:
+Variants, all through ``sampling.make_sampler`` on the same parameters and keys:
 
 * ``before``: the FiLM heads (step MLP and ``mish(step)·W_t + mish(cond)·W_c + b`` of every block) run inside every
   denoising step and mish is ``jax.nn.mish`` (``exp + log1p + tanh``). The code before the optimisation ran the
@@ -30,7 +30,8 @@ import numpy as np
 
 from benchmarks.common import device_kind, make_bench_policy, markdown_table, report_rows
 from hipolicy_jax.models import unet
-from hipolicy_jax.sampling import sample_jit
+from hipolicy_jax.config import InferenceConfig
+from hipolicy_jax.sampling import make_sampler
 
 NAME = "optimisation"
 VARIANTS = ("before", "film", "mish", "after")
@@ -114,13 +115,15 @@ def compare(policy, sampler: str, steps: int, n: int, rounds: int, budget_s: flo
             variants=VARIANTS) -> dict:
     """Interleaved timing of ``variants`` at one (sampler, N); returns medians (NaN for variants not timed),
     speed-ups over ``before`` and the largest output difference to ``after``."""
+    inference = InferenceConfig(num_samples=n, sampler=sampler, num_steps=steps)
+    fns = {v: make_sampler(variant_net(policy.net, v), policy.cfg, policy.net.action_dim, inference)
+           for v in variants}
+
     def call(variant, key):
-        return sample_jit(policy.params, policy.normalizer, policy.obs, key, net=variant_net(policy.net, variant),
-                          cfg=policy.cfg, action_dim=policy.net.action_dim, num_samples=n, num_steps=steps,
-                          sampler=sampler).chunks
+        return fns[variant](policy.params, policy.normalizer, policy.obs, key).chunks
 
     outs = {v: np.asarray(call(v, jax.random.key(0))) for v in variants}  # compiles every variant
-    cache = sample_jit._cache_size()
+    cache = sum(fn._cache_size() for fn in fns.values())
     times = {v: [] for v in variants}
     start = time.perf_counter()
     for r in range(rounds):
@@ -136,7 +139,7 @@ def compare(policy, sampler: str, steps: int, n: int, rounds: int, budget_s: flo
     return {"sampler": sampler, "steps": steps, "n": n, "rounds": len(times["after"]),
             **{f"{v}_median_s": med[v] for v in VARIANTS},
             **{f"speedup_{v}": med["before"] / med[v] for v in VARIANTS if v != "before"},
-            "max_abs_diff": gap, "retraces": sample_jit._cache_size() - cache}
+            "max_abs_diff": gap, "retraces": sum(fn._cache_size() for fn in fns.values()) - cache}
 
 
 def main(argv=None) -> dict:

@@ -3,8 +3,8 @@
     python -m benchmarks.rollout                         # CPU default: press_button, cpu size, N=4, DDIM 10
     python -m benchmarks.rollout --num-samples 100 --sampler ddpm --num-steps 100 --batches 1 16 100   # GPU
 
-Uses the evaluation path itself: ``envs.rollout.evaluate`` with ``policy.make_policy_fn`` and a traced
-``PolicyArgs`` of an initialised (untrained) policy. Control steps executed are counted from the result
+Uses the evaluation path itself: an ``evaluation.Evaluator`` (one compiled rollout per episode count) with an
+initialised (untrained) policy. Control steps executed are counted from the result
 (``EvalResult.steps``: an episode stops early only if it succeeds), so steps/s is exact even when some finish.
 """
 
@@ -18,8 +18,8 @@ import numpy as np
 from benchmarks.common import (base_parser, device_kind, latency_stats, make_bench_policy, markdown_table, precision_context,
                                timed_calls, report_rows)
 from hipolicy_jax import envs
-from hipolicy_jax.envs.rollout import evaluate
-from hipolicy_jax.policy import PolicyArgs, make_policy_fn
+from hipolicy_jax.config import InferenceConfig
+from hipolicy_jax.evaluation import Evaluator
 
 NAME = "rollout"
 
@@ -49,16 +49,14 @@ def main(argv=None) -> dict:
     env = envs.make(args.task)
     policy = make_bench_policy(args.size, "state", state_dim=env.state_dim, action_dim=env.action_dim)
     cfg = policy.cfg
-    policy_fn = make_policy_fn(policy.net, cfg, env.action_dim, num_samples=args.num_samples,
-                               num_steps=args.num_steps, sampler=args.sampler)
-    policy_args = PolicyArgs(policy.params, policy.normalizer, None)
+    inference = InferenceConfig(num_samples=args.num_samples, sampler=args.sampler, num_steps=args.num_steps)
+    evaluator = Evaluator(env, cfg, env.action_dim, inference, max_steps=args.max_steps)
     rows = []
     for e in args.batches:
         steps_done = {}
 
         def run(i, e=e):
-            res = evaluate(policy_fn, env, e, jax.random.key(1000 + i), history_len=cfg.chunk.obs_span,
-                           chunk_len=cfg.chunk.chunk_len, max_steps=args.max_steps, policy_args=policy_args)
+            res = evaluator.evaluate(policy.params, policy.normalizer, e, jax.random.key(1000 + i))
             steps_done[i] = res.steps
             return res
 

@@ -3,7 +3,7 @@
     python -m benchmarks.sampling                      # CPU default: cpu size, state obs, N 1/10/100, < 10 min
     python -m benchmarks.sampling --sizes cpu paper --obs state image pointcloud --ns 1 5 10 100 500   # GPU grid
 
-For every (size, obs, sampler, N): median / p90 latency of ``sampling.sample_jit`` (``block_until_ready``, after a
+For every (size, obs, sampler, N): median / p90 latency of ``sampling.make_sampler`` (``block_until_ready``, after a
 warm-up call that also compiles), the ratio latency(N) / latency(1), peak memory (device allocator on a GPU, RSS on
 a CPU) and the achieved GFLOP/s. A ``loop`` row times N separate N=1 calls from Python, which is what the one-call
 design (encode once, ``vmap`` over the N draws) replaces. FLOPs per sample-step come from XLA's cost analysis of
@@ -25,10 +25,9 @@ import jax.numpy as jnp
 from benchmarks.common import (MemoryMonitor, base_parser, compiled_flops, device_kind, latency_stats, make_bench_policy,
                                markdown_table, matmul_peak_gflops, param_count, precision_context, timed_calls,
                                write_results)
-from hipolicy_jax import diffusion
-from hipolicy_jax.config import PolicyConfig
+from hipolicy_jax.config import InferenceConfig, PolicyConfig, replace
 from hipolicy_jax.models.policy_net import PolicyNet, init_policy_params
-from hipolicy_jax.sampling import sample_jit
+from hipolicy_jax.sampling import make_sampler
 
 NAME = "sampling"
 
@@ -38,8 +37,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     cpu = device_kind() == "cpu"
     p = base_parser(NAME, __doc__, grid=True)
     p.add_argument("--ns", nargs="+", type=int, default=[1, 10, 100] if cpu else [1, 5, 10, 100, 500])
-    p.add_argument("--samplers", nargs="+", default=["ddim", "ddpm"], choices=["ddpm", "ddim"])
-    p.add_argument("--ddim-steps", type=int, default=10)
+    p.add_argument("--samplers", nargs="+", default=["ddim", "ddpm"], choices=["ddpm", "ddim", "euler"],
+                   help="euler: the flow-matching head (same network) with --ddim-steps Euler steps")
+    p.add_argument("--ddim-steps", type=int, default=10, help="DDIM / Euler steps")
     p.add_argument("--repeats", type=int, default=20, help="timed calls per row after the warm-up")
     p.add_argument("--row-budget-s", type=float, default=20.0 if cpu else None,
                    help="stop a row's repeats once it has spent this long (at least 2 calls); CPU default 20 s")
@@ -58,8 +58,15 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def sampler_steps(cfg: PolicyConfig, sampler: str, ddim_steps: int) -> int:
-    """Reverse steps of ``sampler``: every train step for DDPM, ``ddim_steps`` for DDIM."""
+    """Reverse steps of ``sampler``: every train step for DDPM, ``ddim_steps`` for DDIM and Euler."""
     return cfg.diffusion.num_train_steps if sampler == "ddpm" else ddim_steps
+
+
+def compiled_sampler(policy, sampler: str, steps: int, n: int):
+    """``make_sampler`` for one row: the flow head for 'euler' (the network is the same), diffusion otherwise."""
+    cfg = replace(policy.cfg, objective="flow") if sampler == "euler" else policy.cfg
+    return make_sampler(PolicyNet(cfg, policy.net.action_dim), cfg, policy.net.action_dim,
+                        InferenceConfig(num_samples=n, sampler=sampler, num_steps=steps))
 
 
 def flops_per_sample_step(policy, batch: int = 1) -> float:
@@ -78,26 +85,24 @@ def flops_per_sample_step(policy, batch: int = 1) -> float:
 
 
 def bench_vmap_row(policy, sampler: str, steps: int, n: int, args) -> dict:
-    """Latency, memory and retrace count of ``sample_jit`` with ``num_samples=n`` (one compiled call)."""
-    call = functools.partial(sample_jit, policy.params, policy.normalizer, policy.obs, net=policy.net,
-                             cfg=policy.cfg, action_dim=policy.net.action_dim, num_samples=n, num_steps=steps,
-                             sampler=sampler)
+    """Latency, memory and retrace count of the compiled sampler with ``num_samples=n`` (one compiled call)."""
+    fn = compiled_sampler(policy, sampler, steps, n)
+    call = functools.partial(fn, policy.params, policy.normalizer, policy.obs)
     with precision_context(args.matmul_precision):
         with MemoryMonitor() as mem:
             times, first = timed_calls(lambda i: call(jax.random.key(i + 1000)).chunks, 1, warmup=1)
-            cache = sample_jit._cache_size()
+            cache = fn._cache_size()
             times, _ = timed_calls(lambda i: call(jax.random.key(i)).chunks, args.repeats, args.row_budget_s,
                                    warmup=0)
-            retraces = sample_jit._cache_size() - cache
+            retraces = fn._cache_size() - cache
     return {**latency_stats(times), "compile_s": first, "mem_peak_mb": mem.peak_mb, "mem_delta_mb": mem.delta_mb,
             "mem_kind": mem.kind, "retraces": retraces}
 
 
 def bench_loop_row(policy, sampler: str, steps: int, n: int, args) -> dict:
     """Latency of N separate ``num_samples=1`` calls dispatched from a Python loop (what the one call replaces)."""
-    call = functools.partial(sample_jit, policy.params, policy.normalizer, policy.obs, net=policy.net,
-                             cfg=policy.cfg, action_dim=policy.net.action_dim, num_samples=1, num_steps=steps,
-                             sampler=sampler)
+    call = functools.partial(compiled_sampler(policy, sampler, steps, 1), policy.params, policy.normalizer,
+                             policy.obs)
 
     def loop(i):
         base = jax.random.key(i + 10_000)

@@ -1,8 +1,8 @@
 """Reproduce the paper's experiment tables on the MJX tasks: ``python -m experiments.paper TABLE --budget B``.
 
-Tables (sub-commands), each trained with ``experiments.train.main`` and evaluated on the same episodes per seed:
+Tables (sub-commands), each trained with ``hipolicy_jax.runs.train`` and evaluated on the same episodes per seed:
 
-- ``main``: DP vs DP+HiPolicy per task, precise / non-precise tasks apart (``common.TASK_PRECISE``); with
+- ``main``: DP vs DP+HiPolicy per task, precise / non-precise tasks apart (``envs.TASK_PRECISE``); with
   ``--obs-types state pointcloud`` also DP3 vs DP3+HiPolicy (point-cloud encoder, sample prediction).
 - ``ablation``: HiPolicy with hierarchical / low-only / high-only observation conditions, without fusion, and
   without the hierarchy (one stride, i.e. DP).
@@ -35,11 +35,15 @@ from typing import Any, Literal, NamedTuple
 import numpy as np
 import tyro
 
-from experiments.common import (CPU_POLICY, CPU_TRAIN, TASK_PRECISE, EvalOptions, Run, default_data_path,
-                                eval_key, eval_summary, evaluate_policy_recorded, load_run, read_calibration,
-                                read_json, run_action_dim, write_json)
-from hipolicy_jax.config import (ModelConfig, PolicyConfig, SamplingConfig, TrainConfig, replace)
+from hipolicy_jax.config import EvalConfig, InferenceConfig, ModelConfig, PolicyConfig, TrainConfig, replace
+from hipolicy_jax.envs import TASK_PRECISE
 from hipolicy_jax.envs.base import PROPRIO_DIM
+from hipolicy_jax.envs.demos import default_data_path
+from hipolicy_jax.evaluation import calibration
+from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
+from hipolicy_jax.runs.calibrate import run_entropies
+from hipolicy_jax.runs.store import Run, eval_key, make_evaluator, read_json, write_json
+from hipolicy_jax.runs.train import CPU_POLICY, CPU_TRAIN, RunConfig, ensure_trained
 
 TaskName = Literal["press_button", "latch_door", "stack_cubes", "pick_place"]
 ObsName = Literal["state", "image", "pointcloud"]
@@ -47,11 +51,12 @@ TABLES = ("main", "ablation", "entropy", "thresholds", "hparams")
 
 
 class Budget(NamedTuple):
-    """Everything a budget fixes: policy / training configs, demos, evaluation."""
+    """Everything a budget fixes: policy / training configs, demos, evaluation episodes and inference settings."""
 
     policy: PolicyConfig
     train: TrainConfig
-    eval: EvalOptions
+    eval: EvalConfig
+    inference: InferenceConfig
     demos: int
     val_ratio: float
     note: str
@@ -59,20 +64,23 @@ class Budget(NamedTuple):
 
 BUDGETS: dict[str, Budget] = {
     "smoke": Budget(
-        policy=PolicyConfig(model=ModelConfig(size="tiny", fusion_heads=2), sampling=SamplingConfig(num_samples=4)),
+        policy=PolicyConfig(model=ModelConfig(size="tiny", fusion_heads=2)),
         train=TrainConfig(batch_size=16, num_steps=12, warmup_steps=2, log_every=6, ckpt_every=6),
-        eval=EvalOptions(episodes=3, num_samples=4, num_steps=2, every=0, calib_windows=16),
+        eval=EvalConfig(episodes=3, every=0),
+        inference=InferenceConfig(num_samples=4, sampler="auto", num_steps=2, calib_windows=16),
         demos=6, val_ratio=0.34, note="tiny model, 12 steps x batch 16 on 6 demos; 3 episodes, N=4, DDIM 2 steps"),
     "cpu": Budget(
         policy=CPU_POLICY,
         train=dataclasses.replace(CPU_TRAIN, num_steps=2000),
-        eval=EvalOptions(episodes=50, num_samples=16, num_steps=10, every=0, calib_windows=128),
+        eval=EvalConfig(episodes=50, every=0),
+        inference=InferenceConfig(num_samples=16, sampler="auto", num_steps=10, calib_windows=128),
         demos=100, val_ratio=0.1, note="CPU model, 2000 steps x batch 64 on 100 demos; 50 episodes, N=16, DDIM 10"),
     "gpu": Budget(
-        policy=PolicyConfig(model=ModelConfig(size="paper"), sampling=SamplingConfig(num_samples=100)),
+        policy=PolicyConfig(model=ModelConfig(size="paper")),
         train=TrainConfig(batch_size=128, num_steps=20000, lr=1e-4, warmup_steps=500, log_every=100,
                           ckpt_every=2000),
-        eval=EvalOptions(episodes=100, num_samples=100, sampler="ddpm", num_steps=100, every=0, calib_windows=256),
+        eval=EvalConfig(episodes=100, every=0),
+        inference=InferenceConfig(num_samples=100, sampler="ddpm", calib_windows=256),
         demos=100, val_ratio=0.1,
         note="paper-size model, 20000 steps x batch 128 on 100 demos; 100 episodes, N=100, DDPM 100 steps"),
 }
@@ -190,12 +198,12 @@ class Column(NamedTuple):
     percentiles: tuple[float, ...] | None = None
 
 
-_ABBREV = {"chunk.obs_horizon": "lh", "chunk.chunk_len": "lc", "model.condition": "cond-"}
+_ABBREV = {"chunk.obs_horizon": "lh", "chunk.chunk_len": "lc", "model.condition": "cond-", "objective": ""}
 
 
 def variant_name(changes: tuple[tuple[str, Any], ...]) -> str:
     """Canonical run-dir name of a set of config changes: 'hipolicy' (none), 'dp' (one stride), else e.g.
-    'lh1', 'cond-low', 'nofusion', 's1-2'."""
+    'lh1', 'cond-low', 'nofusion', 's1-2', 'flow' (the flow-matching head)."""
     changes = tuple(sorted(changes))
     if not changes:
         return "hipolicy"
@@ -216,86 +224,72 @@ def run_dir(args: PaperArgs, task: str, obs_type: str, changes, seed: int) -> st
     return os.path.join(args.runs, args.budget, task, obs_type, variant_name(changes), f"seed{seed}")
 
 
-def eval_options(args: PaperArgs) -> EvalOptions:
-    b = BUDGETS[args.budget].eval
-    return b if args.episodes is None else dataclasses.replace(b, episodes=args.episodes)
+def eval_episodes(args: PaperArgs) -> int:
+    """Evaluation episodes per seed: ``--episodes`` or the budget's."""
+    return BUDGETS[args.budget].eval.episodes if args.episodes is None else args.episodes
 
 
-def train_args(args: PaperArgs, task: str, obs_type: str, changes, seed: int):
-    """``experiments.train.TrainArgs`` of one run (budget configs + obs type + variant changes + seed)."""
-    from experiments.train import TrainArgs
-
+def train_args(args: PaperArgs, task: str, obs_type: str, changes, seed: int) -> RunConfig:
+    """The ``RunConfig`` of one run (budget configs + obs type + variant changes + seed)."""
     b = BUDGETS[args.budget]
     policy = replace(b.policy, **{**OBS_CHANGES[obs_type], **BUDGET_OBS_CHANGES.get((args.budget, obs_type), {}),
                                   **dict(changes)})
     data = os.path.join(args.data, os.path.basename(default_data_path(task, policy.encoder, b.demos)))
-    return TrainArgs(task=task, out=run_dir(args, task, obs_type, changes, seed), data=data, episodes=b.demos,
+    return RunConfig(task=task, out=run_dir(args, task, obs_type, changes, seed), data=data, episodes=b.demos,
                      val_ratio=b.val_ratio, policy=policy, train=dataclasses.replace(b.train, seed=seed),
-                     eval=eval_options(args), progress=args.progress, final_eval=False)
+                     eval=dataclasses.replace(b.eval, episodes=eval_episodes(args)), inference=b.inference,
+                     progress=args.progress, final_eval=False)
 
 
-def ensure_trained(targs) -> Run:
-    """Train (or resume) a run unless it finished already; → the loaded run."""
-    from experiments.train import main as train_main
-
-    out = targs.out_dir()
-    summary = os.path.join(out, "summary.json")
-    done = os.path.exists(summary) and read_json(summary).get("steps") == targs.train.num_steps
-    if not done:
-        print(f"[paper] training {out}", flush=True)
-        train_main(targs)
-    run = load_run(out)
-    if run.policy.cfg != targs.policy:
-        raise ValueError(f"{out} holds a run of a different policy config; delete it or pass another --runs")
-    return run
-
-
-def _thresholds(run: Run, col: Column, opts: EvalOptions, seed: int, cache: dict) -> tuple[float, ...] | None:
-    from experiments.calibrate import demo_entropies, thresholds_for
-    from hipolicy_jax.trainer import run_keys
-
+def _thresholds(run: Run, col: Column, inference: InferenceConfig, evaluator: Evaluator, seed: int,
+                cache: dict) -> tuple[float, ...] | None:
+    """The column's thresholds for a run: its ``calibration.json`` or, with ``col.percentiles``, those percentiles of
+    its held-out demo entropies (measured once per run); None without entropy guidance or for one frequency."""
     m = run.policy.cfg.chunk.num_freqs
     if m == 1 or not col.guided:
         return None
     if col.percentiles is None:
-        calib = read_calibration(run.run_dir)
-        if calib is None:
-            raise FileNotFoundError(f"{run.run_dir}/calibration.json is missing (written by experiments.train)")
-        return tuple(calib["thresholds"])
+        return calibration.resolve_thresholds(inference, m, calibration.read_calibration(run.run_dir))[0]
     if run.run_dir not in cache:
-        cache[run.run_dir] = demo_entropies(run, opts, run_keys(seed)["eval"])
-    return thresholds_for(cache[run.run_dir], m, col.percentiles)
+        cache[run.run_dir] = run_entropies(run, inference, "demos", seed=seed, evaluator=evaluator)
+    return calibration.calibrate_thresholds(cache[run.run_dir], m, col.percentiles)
 
 
-def evaluate_cached(run: Run, opts: EvalOptions, seed: int, thresholds, guided: bool) -> dict:
+def evaluate_cached(run: Run, evaluator: Evaluator, episodes: int, seed: int, thresholds, guided: bool) -> dict:
     """``eval_summary`` of one evaluation of a run, cached in ``<run>/paper_evals.json`` by its settings."""
-    key = json.dumps({"step": run.policy.step, "episodes": opts.episodes, "num_samples": opts.num_samples,
-                      "sampler": opts.sampler, "num_steps": opts.num_steps, "seed": seed, "guided": guided,
+    inf = evaluator.inference
+    key = json.dumps({"step": run.policy.step, "episodes": episodes, "num_samples": inf.num_samples,
+                      "sampler": inf.sampler, "num_steps": inf.num_steps, "seed": seed, "guided": guided,
                       "thresholds": None if thresholds is None else [float(t) for t in thresholds]})
     path = os.path.join(run.run_dir, "paper_evals.json")
     cache = read_json(path) if os.path.exists(path) else {}
     if key not in cache:
         p = run.policy
-        result, _ = evaluate_policy_recorded(p.net, p.params, p.normalizer, p.cfg, run_action_dim(run), run.task,
-                                             dataclasses.replace(opts, entropy_guided=guided), eval_key(seed),
-                                             thresholds=thresholds)
+        result = evaluator.evaluate(p.params, p.normalizer, episodes, eval_key(seed), thresholds,
+                                    entropy_guided=guided)
         cache[key] = {**eval_summary(result), "thresholds": None if thresholds is None else list(thresholds)}
         write_json(path, cache)
     return cache[key]
 
 
 def collect(args: PaperArgs, columns: list[Column]) -> list[dict]:
-    """Train what is missing and evaluate every (task, seed, column) → one record per evaluation."""
-    opts = eval_options(args)
+    """Train what is missing and evaluate every (task, seed, column) → one record per evaluation. One
+    ``Evaluator`` per (task, variant) serves all its seeds (one compile)."""
+    inference = BUDGETS[args.budget].inference
     entropy_cache: dict = {}
+    evaluators: dict = {}
     records = []
     t0 = time.perf_counter()
     for task in args.tasks:
         for seed in args.seeds:
             for col in columns:
                 run = ensure_trained(train_args(args, task, col.obs_type, col.changes, seed))
-                th = _thresholds(run, col, opts, seed, entropy_cache)
-                summary = evaluate_cached(run, opts, seed, th, col.guided)
+                ident = (task, run.policy.cfg, run.action_dim)
+                if ident not in evaluators:
+                    evaluators[ident] = make_evaluator(run, inference)
+                ev = evaluators[ident]
+                th = _thresholds(run, col, inference, ev, seed, entropy_cache)
+                summary = evaluate_cached(run, ev, eval_episodes(args), seed, th, col.guided)
                 records.append({"task": task, "seed": seed, "column": col.label,
                                 "run": os.path.relpath(run.run_dir), **summary})
                 print(f"[paper {time.perf_counter() - t0:7.0f}s] {task} seed {seed} {col.label}: success "
@@ -349,7 +343,7 @@ def results_header(title: str, args: PaperArgs, notes: list[str]) -> str:
     b = BUDGETS[args.budget]
     lines = [f"# {title}", "", f"Command: `{command_line(args)}`", "",
              f"Seeds: {', '.join(str(s) for s in args.seeds)} (mean ± sample std over seeds). Budget `{args.budget}`: "
-             f"{b.note}; evaluation episodes: {eval_options(args).episodes} per seed, the same initial states for "
+             f"{b.note}; evaluation episodes: {eval_episodes(args)} per seed, the same initial states for "
              f"every column."]
     lines += [""] + [f"- {n}" for n in notes] if notes else []
     return "\n".join(lines) + "\n"

@@ -21,7 +21,7 @@ from typing import Literal
 ObsType = Literal["state", "image", "pointcloud"]
 ConditionMode = Literal["hier", "low", "high"]
 PredictionType = Literal["epsilon", "sample"]
-SamplerKind = Literal["ddpm", "ddim"]
+Objective = Literal["diffusion", "flow"]
 ModelSize = Literal["cpu", "paper", "tiny"]
 
 
@@ -121,6 +121,11 @@ class EncoderConfig:
         _require(len(self.image_channels) >= 1, "encoder.image_channels", "needs at least one stage")
         _require(self.num_keypoints >= 1, "encoder.num_keypoints", f"must be >= 1, got {self.num_keypoints}")
 
+    @property
+    def obs_keys(self) -> tuple[str, ...]:
+        """Observation keys the policy reads: state always, plus the image or point cloud."""
+        return {"state": ("state",), "image": ("state", "image"), "pointcloud": ("state", "point_cloud")}[self.obs_type]
+
 
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
@@ -170,7 +175,11 @@ class ModelConfig:
 
 @dataclasses.dataclass(frozen=True)
 class DiffusionConfig:
-    """DDPM noise schedule and samplers (Diffusion Policy defaults)."""
+    """The diffusion head's training objective: DDPM noise schedule and prediction type (Diffusion Policy defaults).
+
+    How a trained diffusion head is sampled (DDPM, DDIM, number of steps) is an inference setting
+    (``InferenceConfig``), not part of the trained policy.
+    """
 
     num_train_steps: int = 100
     beta_schedule: Literal["squaredcos_cap_v2", "linear"] = "squaredcos_cap_v2"
@@ -179,44 +188,109 @@ class DiffusionConfig:
     prediction_type: PredictionType = "epsilon"  # DP: epsilon; DP3: sample
     clip_sample: bool = True
     clip_range: float = 1.0
-    sampler: SamplerKind = "ddpm"
-    num_inference_steps: int = 100  # DDPM uses every train step; DDIM strides through them
 
     def __post_init__(self):
         _require(self.num_train_steps >= 1, "diffusion.num_train_steps", f"must be >= 1, got {self.num_train_steps}")
         _require(self.prediction_type in ("epsilon", "sample"), "diffusion.prediction_type",
                  f"must be 'epsilon' or 'sample', got {self.prediction_type!r}")
-        _require(self.sampler in ("ddpm", "ddim"), "diffusion.sampler", f"must be 'ddpm' or 'ddim', got {self.sampler!r}")
-        _require(1 <= self.num_inference_steps <= self.num_train_steps, "diffusion.num_inference_steps",
-                 f"must be in [1, num_train_steps={self.num_train_steps}], got {self.num_inference_steps}")
-        _require(self.sampler == "ddim" or self.num_inference_steps == self.num_train_steps,
-                 "diffusion.num_inference_steps",
-                 f"DDPM denoises through all {self.num_train_steps} train steps; use sampler='ddim' for "
-                 f"{self.num_inference_steps} steps")
         _require(self.beta_schedule in ("squaredcos_cap_v2", "linear"), "diffusion.beta_schedule",
                  f"must be 'squaredcos_cap_v2' or 'linear', got {self.beta_schedule!r}")
+        _require(self.clip_range > 0, "diffusion.clip_range", f"must be > 0, got {self.clip_range}")
 
 
 @dataclasses.dataclass(frozen=True)
-class SamplingConfig:
-    """One-call N-sample sampling and entropy-guided stride selection.
+class FlowConfig:
+    """The flow-matching head's training objective (conditional flow matching, linear / OT path, as openpi).
 
-    ``thresholds`` are M+1 ascending entropies (−inf / +inf allowed at the ends). An entropy H in
-    [thresholds[k], thresholds[k+1]) selects the k-th highest frequency, i.e. ``strides[k]``; values outside the
-    outer thresholds clamp to the first / last frequency. ``None`` means "not calibrated": always execute the
-    highest frequency.
+    ``x_τ = τ·ε + (1−τ)·a`` with τ = 1 pure noise and τ = 0 the action chunk; the network predicts the velocity
+    ``ε − a`` from ``x_τ`` and the time input ``τ·time_scale`` (so the sinusoidal step embedding sees the same range
+    as the diffusion head's integer timesteps). Training draws τ uniformly, or from openpi's ``Beta(1.5, 1)``
+    (more weight on noisy times) with ``time_sampling='beta'``.
     """
 
-    num_samples: int = 100  # N
+    time_sampling: Literal["uniform", "beta"] = "uniform"
+    time_scale: float = 100.0
+    clip_sample: bool = True  # clip the final sample to [-clip_range, clip_range] (the normalised action range)
+    clip_range: float = 1.0
+
+    def __post_init__(self):
+        _require(self.time_sampling in ("uniform", "beta"), "flow.time_sampling",
+                 f"must be 'uniform' or 'beta', got {self.time_sampling!r}")
+        _require(self.time_scale > 0, "flow.time_scale", f"must be > 0, got {self.time_scale}")
+        _require(self.clip_range > 0, "flow.clip_range", f"must be > 0, got {self.clip_range}")
+
+
+ExecutionKind = Literal["chunk"]
+
+
+@dataclasses.dataclass(frozen=True)
+class InferenceConfig:
+    """How a trained policy is run: the one home of every inference setting.
+
+    Used by training's periodic evaluation, ``experiments.evaluate`` / ``calibrate``, the paper budgets and the
+    benchmarks. It is not part of a trained run's identity (changing it never blocks resume or reuse of a run);
+    ``experiments.train`` stores the one it used beside the run (``inference.json``), where ``evaluate`` and
+    ``calibrate`` take their defaults from.
+
+    - ``num_samples``: N chunks drawn per decision for the action entropy (N = 1: no entropy, highest frequency).
+    - ``sampler`` / ``num_steps``: how the generative head integrates. Diffusion: ``ddpm`` (every train step),
+      ``ddim`` (diffusers' default DDIM, η = 0) or ``ddim-clipped`` (DDIM with ε recomputed from the clipped clean
+      sample, diffusers' ``use_clipped_model_output=True``); flow: ``euler``. ``auto`` is ``ddim`` for diffusion and
+      ``euler`` for flow; ``num_steps`` None is every train step for DDPM and 10 otherwise.
+    - ``thresholds``: M+1 ascending (or the M−1 inner) entropy thresholds; None: the run's calibration, taken at
+      ``percentiles`` (M−1 values in (0, 100); None: 10 / 70 for M = 3 as the paper, evenly spaced otherwise) of
+      the action entropies of ``calib_windows`` held-out demo windows.
+    - ``entropy_guided``: False always executes the highest frequency (stride 1).
+    - ``execution``: how a decision's chunk is executed; ``chunk`` runs the L_c actions of the selected frequency.
+    """
+
+    num_samples: int = 16
+    sampler: Literal["auto", "ddpm", "ddim", "ddim-clipped", "euler"] = "auto"
+    num_steps: int | None = None
     thresholds: tuple[float, ...] | None = None
+    percentiles: tuple[float, ...] | None = None
+    calib_windows: int = 128
+    entropy_guided: bool = True
+    execution: ExecutionKind = "chunk"
     entropy_eps: float = 1e-6
 
     def __post_init__(self):
-        _require(self.num_samples >= 1, "sampling.num_samples", f"(N) must be >= 1, got {self.num_samples}")
+        _require(self.num_samples >= 1, "inference.num_samples", f"(N) must be >= 1, got {self.num_samples}")
+        _require(self.sampler in ("auto", "ddpm", "ddim", "ddim-clipped", "euler"), "inference.sampler",
+                 f"must be 'auto', 'ddpm', 'ddim', 'ddim-clipped' or 'euler', got {self.sampler!r}")
+        _require(self.num_steps is None or self.num_steps >= 1, "inference.num_steps",
+                 f"must be None (the sampler's default) or >= 1, got {self.num_steps}")
         if self.thresholds is not None:
             t = tuple(float(x) for x in self.thresholds)
-            _require(all(a < b for a, b in zip(t, t[1:])), "sampling.thresholds", f"must be strictly ascending, got {t}")
+            _require(all(a < b for a, b in zip(t, t[1:])), "inference.thresholds",
+                     f"must be strictly ascending, got {t}")
             object.__setattr__(self, "thresholds", t)
+        if self.percentiles is not None:
+            p = tuple(float(x) for x in self.percentiles)
+            _require(all(0 < x < 100 for x in p) and all(a < b for a, b in zip(p, p[1:])), "inference.percentiles",
+                     f"must be ascending values in (0, 100), got {p}")
+            object.__setattr__(self, "percentiles", p)
+        _require(self.calib_windows >= 1, "inference.calib_windows", f"must be >= 1, got {self.calib_windows}")
+        _require(self.execution in ("chunk",), "inference.execution", f"must be 'chunk', got {self.execution!r}")
+        _require(self.entropy_eps > 0, "inference.entropy_eps", f"must be > 0, got {self.entropy_eps}")
+
+    def sampler_settings(self) -> "InferenceConfig":
+        """Only what the compiled sampler depends on (N, sampler, steps, entropy ε), the rest at defaults: the
+        static key of compiled samplers and rollouts, so thresholds or calibration settings never recompile."""
+        return InferenceConfig(num_samples=self.num_samples, sampler=self.sampler, num_steps=self.num_steps,
+                               execution=self.execution, entropy_eps=self.entropy_eps)
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    """Closed-loop evaluation during and after training (the inference settings are ``InferenceConfig``)."""
+
+    episodes: int = 20
+    every: int = 1000  # training steps between evaluations (0: only at the end)
+
+    def __post_init__(self):
+        _require(self.episodes >= 1, "eval.episodes", f"must be >= 1, got {self.episodes}")
+        _require(self.every >= 0, "eval.every", f"must be >= 0, got {self.every}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -252,13 +326,19 @@ class TrainConfig:
 
 @dataclasses.dataclass(frozen=True)
 class PolicyConfig:
-    """Everything that defines a policy: windowing, encoder, denoiser, diffusion and sampling."""
+    """Everything that defines a trained policy: windowing, encoder, denoiser and generative objective.
+
+    ``objective`` picks the generative head (``heads.HEADS``): ``diffusion`` (DDPM, ``diffusion``'s settings) or
+    ``flow`` (conditional flow matching, ``flow``'s settings). How the policy is sampled and executed is
+    ``InferenceConfig``, not part of this config.
+    """
 
     chunk: ChunkConfig = ChunkConfig()
     encoder: EncoderConfig = EncoderConfig()
     model: ModelConfig = ModelConfig()
+    objective: Objective = "diffusion"
     diffusion: DiffusionConfig = DiffusionConfig()
-    sampling: SamplingConfig = SamplingConfig()
+    flow: FlowConfig = FlowConfig()
 
     def __post_init__(self):
         m, lc, f = self.chunk.num_freqs, self.chunk.chunk_len, self.model.downsample_factor
@@ -266,9 +346,8 @@ class PolicyConfig:
         _require(lc % f == 0, "chunk.chunk_len",
                  f"(L_c={lc}) must be divisible by the U-Net's down-sampling factor {f} "
                  f"(2^(len(model.down_dims)-1)) so each frequency segment stays aligned at every level")
-        if self.sampling.thresholds is not None:
-            _require(len(self.sampling.thresholds) == m + 1, "sampling.thresholds",
-                     f"needs M+1={m + 1} values for M={m} strides, got {len(self.sampling.thresholds)}")
+        _require(self.objective in ("diffusion", "flow"), "policy.objective",
+                 f"must be 'diffusion' or 'flow', got {self.objective!r}")
         if self.model.fusion and m > 1:
             tok = self.model.unet_dims[0] * lc
             _require(tok % self.model.fusion_heads == 0, "model.fusion_heads",

@@ -1,14 +1,15 @@
-"""The one-call N-sample sampler with entropy-guided frequency selection.
+"""The one-call N-sample sampler with entropy-guided frequency selection, for every generative head.
 
-``sample`` is the only sampler in the code base: evaluation, benchmarks, calibration and tests all call it. One
-compiled call
+``sample`` is the only sampler in the code base: evaluation, benchmarks, calibration and tests all call it
+(``make_sampler`` compiles it for one setting). One compiled call
 
 1. normalises the observation windows and encodes them ONCE → condition (B, M, Dc);
 2. computes the FiLM heads' observation half ``mish(cond)·W_c + b`` once per call, when the network offers
    ``film_condition`` / ``film_steps`` / ``denoise_film`` as ``PolicyNet`` does (a network with only ``encode`` /
    ``denoise`` is called per step with the condition);
-3. denoises N independent noise draws per observation: ``vmap`` over the N sample keys, ``lax.scan`` over the
-   reverse steps of a precomputed DDPM or DDIM table (``diffusion.reverse_table``);
+3. draws N independent chains per observation: ``vmap`` over the N sample keys, ``lax.scan`` over the generative
+   head's precomputed step table (``heads``: DDPM / DDIM for diffusion, Euler for flow matching), the head's
+   update applied at every step;
 4. unnormalises the chunks → (B, N, M·L_c, A);
 5. computes the action entropy H = mean over frequencies, steps and action dims of 0.5·log(2πe·var + ε), with the
    ddof=1 variance over the N samples of the *unnormalised* actions (as the reference release);
@@ -22,14 +23,14 @@ Chunk layout (see ``config``): segments in descending-stride order, so stride ``
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hipolicy_jax import diffusion
-from hipolicy_jax.config import ChunkConfig, PolicyConfig
+from hipolicy_jax.config import ChunkConfig, InferenceConfig, PolicyConfig
+from hipolicy_jax.heads import GenerativeHead, make_head
 
 
 class SampleResult(NamedTuple):
@@ -75,39 +76,38 @@ def precomputes_film(net) -> bool:
     return all(hasattr(net, m) for m in ("film_condition", "film_steps", "denoise_film"))
 
 
-def denoise_chain(net, params, cond, key: jax.Array, *, cfg: PolicyConfig, action_dim: int,
-                  table: diffusion.ReverseTable, film: bool = False) -> jax.Array:
-    """One reverse chain for a batch → normalised chunks (B, M·L_c, A).
+def denoise_chain(net, params, cond, key: jax.Array, *, head: GenerativeHead, inference: InferenceConfig,
+                  horizon: int, action_dim: int, film: bool = False) -> jax.Array:
+    """One chain of the head's sampler for a batch → normalised chunks (B, horizon, A), from Gaussian noise.
 
     ``cond``: the condition (B, M, Dc), or with ``film`` the precomputed FiLM observation halves
     ``{block: (B, K, 2C)}`` (``film_condition``); each step then only adds its step half (one row of ``film_steps``,
     one row per block). The step halves are deliberately not precomputed into an (S, 2C) table sliced inside the
     loop: on XLA:CPU that made the whole sampler ~1.5x slower (``benchmarks/results/PERFORMANCE.md``).
     """
+    plan = head.plan(inference)
     batch = jax.tree.leaves(cond)[0].shape[0]
-    shape = (batch, cfg.chunk.horizon, action_dim)
+    shape = (batch, horizon, action_dim)
     key, k0 = jax.random.split(key)
     x = jax.random.normal(k0, shape, jnp.float32)
 
     def body(x, row_and_key):
         row, k = row_and_key
         if film:
-            step = jax.tree.map(lambda a: a[0], net.apply(params, row.timesteps[None], method=net.film_steps))
+            step = jax.tree.map(lambda a: a[0], net.apply(params, row.time[None], method=net.film_steps))
             out = net.apply(params, x, step, cond, method=net.denoise_film)
         else:
-            t = jnp.full((batch,), row.timesteps, jnp.int32)
-            out = net.apply(params, x, t, cond, method=net.denoise)
-        z = jax.random.normal(k, shape, jnp.float32)
-        return diffusion.reverse_step(cfg.diffusion, row, x, out, z), None
+            out = net.apply(params, x, jnp.full((batch,), row.time), cond, method=net.denoise)
+        return plan.update(row, x, out, k), None
 
-    step_keys = jax.random.split(key, table.timesteps.shape[0])
-    x, _ = jax.lax.scan(body, x, (table, step_keys))
-    return x
+    step_keys = jax.random.split(key, plan.table.time.shape[0])
+    x, _ = jax.lax.scan(body, x, (plan.table, step_keys))
+    return plan.finish(x)
 
 
-def sample(params, normalizer, obs: dict[str, jax.Array], key: jax.Array, *, net, cfg: PolicyConfig,
-           action_dim: int, num_samples: int | None = None, num_steps: int | None = None,
-           sampler: str | None = None, thresholds=None, obs_normalized: bool = False) -> SampleResult:
+def sample(params, normalizer, obs: dict[str, jax.Array], key: jax.Array, thresholds=None, *, net,
+           cfg: PolicyConfig, action_dim: int, inference: InferenceConfig = InferenceConfig(),
+           obs_normalized: bool = False) -> SampleResult:
     """Sample N action chunks per observation and select the execution frequency, in one call.
 
     Args:
@@ -116,24 +116,23 @@ def sample(params, normalizer, obs: dict[str, jax.Array], key: jax.Array, *, net
       obs: observation windows, each (B, M, L_h, ...) in segment order (``data.windowing``); raw unless
         ``obs_normalized`` (static) says they come normalised, as ``SequenceDataset.get_batch`` returns them.
       key: PRNG key; the result is a deterministic function of it.
-      net: the ``PolicyNet`` module (static).
-      num_samples / num_steps / sampler: override ``cfg.sampling`` / ``cfg.diffusion`` (static).
-      thresholds: (M+1,) entropy thresholds overriding ``cfg.sampling.thresholds``; traced, so sweeping them
-        does not recompile.
+      thresholds: (M+1,) ascending entropy thresholds (traced, so sweeping them does not recompile) or None
+        (always the highest frequency).
+      net: the ``PolicyNet`` module; cfg: its ``PolicyConfig`` (the head comes from ``cfg.objective``).
+      inference: N, sampler and number of steps (``InferenceConfig``; its thresholds are not read here).
     """
-    n = num_samples or cfg.sampling.num_samples
-    thresholds = thresholds if thresholds is not None else cfg.sampling.thresholds
-    table = diffusion.reverse_table(cfg.diffusion, num_steps, sampler)
+    head = make_head(cfg)
+    n = inference.num_samples
     cond = net.apply(params, obs if obs_normalized else normalizer.normalize_obs(obs), method=net.encode)
     film = precomputes_film(net)
     if film:
         cond = net.apply(params, cond, method=net.film_condition)  # {block: (B, K, 2C)}, once per call
-    chain = functools.partial(denoise_chain, net, params, cond, cfg=cfg, action_dim=action_dim, table=table,
-                              film=film)
+    chain = functools.partial(denoise_chain, net, params, cond, head=head, inference=inference,
+                              horizon=cfg.chunk.horizon, action_dim=action_dim, film=film)
     chunks = jax.vmap(chain)(jax.random.split(key, n))  # (N, B, T, A)
     chunks = normalizer.unnormalize("action", jnp.swapaxes(chunks, 0, 1))  # (B, N, T, A)
     if n >= 2:
-        entropy = action_entropy(chunks, cfg.sampling.entropy_eps)
+        entropy = action_entropy(chunks, inference.entropy_eps)
     else:
         entropy = jnp.full(chunks.shape[:1], jnp.nan, jnp.float32)
     k = select_frequency(entropy, thresholds, cfg.chunk.num_freqs)
@@ -141,5 +140,14 @@ def sample(params, normalizer, obs: dict[str, jax.Array], key: jax.Array, *, net
     return SampleResult(chunks, entropy, k, strides[k], segment_of(cfg.chunk, chunks[:, 0], k))
 
 
-sample_jit = jax.jit(sample, static_argnames=("net", "cfg", "action_dim", "num_samples", "num_steps", "sampler",
-                                              "obs_normalized"))
+def make_sampler(net, cfg: PolicyConfig, action_dim: int, inference: InferenceConfig = InferenceConfig(), *,
+                 obs_normalized: bool = False) -> Callable[..., SampleResult]:
+    """``sample`` compiled for one network and setting: ``fn(params, normalizer, obs, key, thresholds=None)``.
+
+    The returned function owns its compiled program (no global cache): keep it to reuse the compile; new
+    parameters, keys, observations of the same shapes or thresholds of the same structure never retrace. Only
+    ``inference.sampler_settings()`` matters, so calibration settings in ``inference`` are ignored.
+    """
+    fn = functools.partial(sample, net=net, cfg=cfg, action_dim=action_dim, inference=inference.sampler_settings(),
+                           obs_normalized=obs_normalized)
+    return jax.jit(fn)

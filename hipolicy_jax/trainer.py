@@ -28,7 +28,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from hipolicy_jax.checkpoint import Checkpointer, config_to_dict
+from hipolicy_jax.checkpoint import Checkpointer, config_from_dict, config_to_dict
 from hipolicy_jax.config import PolicyConfig, TrainConfig
 from hipolicy_jax.models.policy_net import PolicyNet, init_policy_params, param_count
 from hipolicy_jax import parallel
@@ -58,8 +58,13 @@ def checkpoint_meta(cfg: PolicyConfig, train_cfg: TrainConfig, example_batch: di
     return meta
 
 
-def _same_config(a: dict, b: dict, keys=("policy", "action_dim", "obs_shapes")) -> bool:
-    return all(json.dumps(a.get(k), sort_keys=True) == json.dumps(b.get(k), sort_keys=True) for k in keys)
+def _same_config(a: dict, b: dict) -> bool:
+    """Whether two checkpoint metas describe the same trained policy: equal ``PolicyConfig`` (parsed, so fields
+    a newer version dropped or added with their defaults do not matter), action dim and observation shapes.
+    Inference settings are not part of a checkpoint, so they never block a resume."""
+    same_shapes = all(json.dumps(a.get(k), sort_keys=True) == json.dumps(b.get(k), sort_keys=True)
+                      for k in ("action_dim", "obs_shapes"))
+    return same_shapes and config_from_dict(PolicyConfig, a["policy"]) == config_from_dict(PolicyConfig, b["policy"])
 
 
 def _report(msg: str) -> None:

@@ -1,8 +1,8 @@
-"""Training state, optimiser, EMA and the jitted DDPM train step.
+"""Training state, optimiser, EMA and the jitted train step of any generative head.
 
 Diffusion Policy defaults: AdamW (lr 1e-4, betas 0.95/0.999, wd 1e-6) under a cosine schedule with linear warm-up,
-EMA of the parameters with decay 1 − (1 + step)^−0.75 clipped to [0, 0.9999], uniform train timesteps, MSE on ε
-(or on x0 for sample-prediction).
+EMA of the parameters with decay 1 − (1 + step)^−0.75 clipped to [0, 0.9999]. The loss is the generative head's
+(``heads``): MSE on ε or x0 at uniform DDPM timesteps (diffusion), on the velocity ε − a (flow matching).
 
 Keys: the step's key is ``fold_in(base_key, step)`` so a resumed run draws exactly the same noise as an
 uninterrupted one.
@@ -17,8 +17,8 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from hipolicy_jax import diffusion
 from hipolicy_jax.config import PolicyConfig, TrainConfig
+from hipolicy_jax.heads import GenerativeHead, make_head
 
 
 @flax.struct.dataclass
@@ -55,15 +55,14 @@ def init_train_state(params, tx: optax.GradientTransformation) -> TrainState:
     return TrainState(step=jnp.zeros((), jnp.int32), params=params, ema_params=ema, opt_state=tx.init(params))
 
 
-def diffusion_loss(params, batch: dict, key: jax.Array, *, net, cfg: PolicyConfig) -> jax.Array:
-    """Denoising MSE. batch: {"obs": {k: (B, M, L_h, ...)}, "action": (B, M·L_c, A)} normalised."""
-    k_crop, k_t, k_noise = jax.random.split(key, 3)
-    x0 = batch["action"]
+def policy_loss(params, batch: dict, key: jax.Array, *, net, head: GenerativeHead) -> jax.Array:
+    """The generative head's regression loss (MSE). batch: {"obs": {k: (B, M, L_h, ...)}, "action": (B, M·L_c, A)}
+    normalised."""
+    k_crop, k_head = jax.random.split(key)
     cond = net.apply(params, batch["obs"], train=True, method=net.encode, rngs={"crop": k_crop})
-    t = jax.random.randint(k_t, (x0.shape[0],), 0, cfg.diffusion.num_train_steps)
-    noise = jax.random.normal(k_noise, x0.shape, x0.dtype)
-    pred = net.apply(params, diffusion.add_noise(cfg.diffusion, x0, noise, t), t, cond, method=net.denoise)
-    return jnp.mean(jnp.square(pred - diffusion.training_target(cfg.diffusion, x0, noise)))
+    example = head.training_example(batch["action"], k_head)
+    pred = net.apply(params, example.x, example.time, cond, method=net.denoise)
+    return jnp.mean(jnp.square(pred - example.target))
 
 
 def make_train_step(net, cfg: PolicyConfig, train_cfg: TrainConfig,
@@ -74,10 +73,11 @@ def make_train_step(net, cfg: PolicyConfig, train_cfg: TrainConfig,
     so the last good state survives for the caller to report).
     """
     schedule = lr_schedule(train_cfg)
+    head = make_head(cfg)
 
     def step(state: TrainState, batch: dict, base_key: jax.Array):
         key = jax.random.fold_in(base_key, state.step)
-        loss, grads = jax.value_and_grad(diffusion_loss)(state.params, batch, key, net=net, cfg=cfg)
+        loss, grads = jax.value_and_grad(policy_loss)(state.params, batch, key, net=net, head=head)
         grad_norm = optax.tree.norm(grads)
         finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)

@@ -6,8 +6,8 @@ import math
 import pytest
 
 from hipolicy_jax.checkpoint import config_from_dict, config_to_dict
-from hipolicy_jax.config import (ChunkConfig, DiffusionConfig, EncoderConfig, ModelConfig, PolicyConfig,
-                                 SamplingConfig, TrainConfig, replace)
+from hipolicy_jax.config import (ChunkConfig, DiffusionConfig, EncoderConfig, EvalConfig, FlowConfig,
+                                 InferenceConfig, ModelConfig, PolicyConfig, TrainConfig, replace)
 
 
 @pytest.mark.parametrize("make,field", [
@@ -26,14 +26,21 @@ from hipolicy_jax.config import (ChunkConfig, DiffusionConfig, EncoderConfig, Mo
     (lambda: ModelConfig(down_dims=(60, 128)), "model.down_dims"),
     (lambda: ModelConfig(kernel_size=4), "model.kernel_size"),
     (lambda: DiffusionConfig(prediction_type="v"), "diffusion.prediction_type"),
-    (lambda: DiffusionConfig(num_inference_steps=10), "diffusion.num_inference_steps"),
-    (lambda: DiffusionConfig(sampler="ddim", num_inference_steps=200), "diffusion.num_inference_steps"),
-    (lambda: SamplingConfig(num_samples=0), "sampling.num_samples"),
-    (lambda: SamplingConfig(thresholds=(0.0, -1.0)), "sampling.thresholds"),
+    (lambda: DiffusionConfig(beta_schedule="cosine"), "diffusion.beta_schedule"),
+    (lambda: FlowConfig(time_sampling="logit"), "flow.time_sampling"),
+    (lambda: FlowConfig(time_scale=0.0), "flow.time_scale"),
+    (lambda: InferenceConfig(num_samples=0), "inference.num_samples"),
+    (lambda: InferenceConfig(thresholds=(0.0, -1.0)), "inference.thresholds"),
+    (lambda: InferenceConfig(percentiles=(70.0, 10.0)), "inference.percentiles"),
+    (lambda: InferenceConfig(percentiles=(0.0, 50.0)), "inference.percentiles"),
+    (lambda: InferenceConfig(sampler="heun"), "inference.sampler"),
+    (lambda: InferenceConfig(num_steps=0), "inference.num_steps"),
+    (lambda: InferenceConfig(calib_windows=0), "inference.calib_windows"),
+    (lambda: EvalConfig(episodes=0), "eval.episodes"),
+    (lambda: PolicyConfig(objective="score"), "policy.objective"),
     (lambda: TrainConfig(batch_size=0), "train.batch_size"),
     (lambda: TrainConfig(betas=(0.9, 1.0)), "train.betas"),
     (lambda: PolicyConfig(chunk=ChunkConfig(chunk_len=6)), "chunk.chunk_len"),  # 6 % 4 (three U-Net levels)
-    (lambda: PolicyConfig(sampling=SamplingConfig(thresholds=(-1.0, 0.0, 1.0))), "sampling.thresholds"),  # M+1=4
     (lambda: PolicyConfig(model=ModelConfig(fusion_heads=7)), "model.fusion_heads"),
 ])
 def test_bad_values_name_their_field(make, field):
@@ -50,9 +57,22 @@ def test_derived_values_for_the_release_windowing():
     assert ModelConfig().downsample_factor == 4
 
 
-def test_single_stride_with_any_thresholds_count_and_valid_thresholds():
-    PolicyConfig(chunk=ChunkConfig(strides=(1,)), sampling=SamplingConfig(thresholds=(-math.inf, math.inf)))
-    PolicyConfig(sampling=SamplingConfig(thresholds=(-math.inf, -6.0, -5.5, math.inf)))
+def test_inference_settings_are_not_part_of_the_policy():
+    """Thresholds are checked against M where they are used (``calibration.resolve_thresholds``), so one
+    ``InferenceConfig`` serves policies of any M; only the sampler settings key a compile."""
+    from hipolicy_jax.evaluation.calibration import resolve_thresholds
+
+    inf = InferenceConfig(thresholds=(-math.inf, -6.0, -5.5, math.inf), percentiles=(20.0, 80.0), calib_windows=7)
+    assert "sampling" not in {f.name for f in dataclasses.fields(PolicyConfig)}
+    assert resolve_thresholds(inf, 3, None) == ((-math.inf, -6.0, -5.5, math.inf), "inference.thresholds")
+    assert resolve_thresholds(InferenceConfig(thresholds=(-6.0, -5.5)), 3, None)[0] == (-math.inf, -6.0, -5.5,
+                                                                                        math.inf)
+    with pytest.raises(ValueError, match=r"inference.thresholds: need M\+1=2"):
+        resolve_thresholds(inf, 1, None)
+    assert resolve_thresholds(InferenceConfig(), 1, None)[0] == (-math.inf, math.inf)
+    with pytest.raises(FileNotFoundError, match="calibration.json"):
+        resolve_thresholds(InferenceConfig(), 3, None)
+    assert inf.sampler_settings() == InferenceConfig(num_samples=inf.num_samples)
 
 
 def test_configs_are_frozen_and_replace_takes_dotted_keys():
@@ -64,5 +84,7 @@ def test_configs_are_frozen_and_replace_takes_dotted_keys():
 
 
 def test_dict_round_trip():
-    cfg = PolicyConfig(chunk=ChunkConfig(strides=(1, 4)), sampling=SamplingConfig(thresholds=(-1.0, 0.0, 1.0)))
+    cfg = PolicyConfig(chunk=ChunkConfig(strides=(1, 4)), objective="flow", flow=FlowConfig(time_sampling="beta"))
     assert config_from_dict(PolicyConfig, config_to_dict(cfg)) == cfg
+    inf = InferenceConfig(thresholds=(-1.0, 0.0, 1.0), percentiles=(30.0,), sampler="ddpm")
+    assert config_from_dict(InferenceConfig, config_to_dict(inf)) == inf

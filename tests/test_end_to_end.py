@@ -5,23 +5,22 @@ import json
 import math
 
 import numpy as np
+from helpers import xla_compiles
 
-from experiments.common import EvalOptions
-from experiments.train import TrainArgs, main
-from hipolicy_jax.config import ModelConfig, PolicyConfig, SamplingConfig, TrainConfig
-from hipolicy_jax.envs import rollout
+from hipolicy_jax.config import EvalConfig, InferenceConfig, ModelConfig, PolicyConfig, TrainConfig
+from hipolicy_jax.runs.store import read_inference
+from hipolicy_jax.runs.train import RunConfig, main
 
 
 def test_train_calibrate_evaluate_tiny(tmp_path):
-    args = TrainArgs(
+    args = RunConfig(
         task="press_button", out=str(tmp_path / "run"), data=str(tmp_path / "demos.zarr"), episodes=6,
-        val_ratio=0.34,
-        policy=PolicyConfig(model=ModelConfig(size="tiny", fusion_heads=2), sampling=SamplingConfig(num_samples=4)),
+        val_ratio=0.34, policy=PolicyConfig(model=ModelConfig(size="tiny", fusion_heads=2)),
         train=TrainConfig(batch_size=16, num_steps=12, warmup_steps=2, log_every=6, ckpt_every=6),
-        eval=EvalOptions(episodes=3, num_samples=4, num_steps=2, every=6, calib_windows=16),
+        eval=EvalConfig(episodes=3, every=6), inference=InferenceConfig(num_samples=4, num_steps=2, calib_windows=16),
         progress=False)
-    compiled_before = rollout.compiled_rollout.cache_info().currsize
-    summary = main(args)
+    with xla_compiles() as compiled:
+        summary = main(args)
 
     assert summary["steps"] == 12
     assert 0.0 <= summary["eval"]["success_rate"] <= 1.0
@@ -34,12 +33,14 @@ def test_train_calibrate_evaluate_tiny(tmp_path):
     assert [r["step"] for r in rows if r["kind"] == "eval"] == [6, 12]
     assert all(np.isfinite(r["loss"]) for r in rows if r["kind"] == "train")
     assert (tmp_path / "run" / "calibration.json").exists() and (tmp_path / "run" / "summary.json").exists()
-    # three evaluations (step 6, step 12, final) with new parameters each: one compiled rollout
-    assert rollout.compiled_rollout.cache_info().currsize - compiled_before == 1
+    assert read_inference(str(tmp_path / "run")) == args.inference
+    # two evaluations (steps 6 and 12, the final one reused) with new parameters each: one compiled rollout
+    assert sum("rollout_episode" in name for name in compiled) == 1, compiled
 
-    # re-running the finished command resumes at the end: no training steps, same checkpoint
-    again = main(args)
+    # re-running the finished command resumes at the end, whatever the inference settings: no training steps
+    again = main(dataclasses.replace(args, inference=InferenceConfig(num_samples=3, num_steps=1, calib_windows=8)))
     assert again["steps"] == 12
+    assert read_inference(str(tmp_path / "run")).num_samples == 3
 
     # --dry-run validates and reports without training
     info = main(dataclasses.replace(args, dry_run=True))

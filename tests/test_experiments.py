@@ -1,7 +1,8 @@
-"""Experiment entry points on one tiny trained run: evaluate, calibrate, and the paper tables (parsing, the markdown
-writer on fake numbers, and one smoke ``paper entropy`` run reusing the trained run)."""
+"""Experiment entry points on one tiny trained run: evaluate, calibrate, one ``Evaluator`` across checkpoints, and
+the paper tables (parsing, the markdown writer on fake numbers, and one smoke ``paper entropy`` run reusing the
+trained run)."""
 
-import contextlib
+import dataclasses
 import json
 import math
 import os
@@ -13,11 +14,16 @@ import numpy as np
 import pytest
 import tyro
 
+from hipolicy_jax.config import InferenceConfig
+
 from experiments import calibrate, evaluate, paper
-from experiments.train import main as train_main
-from hipolicy_jax.envs import rollout
+from hipolicy_jax import envs
+from hipolicy_jax.runs.cli import parse_with_run_inference
+from hipolicy_jax.runs.store import load_run, make_evaluator
+from hipolicy_jax.runs.train import train
 
 TASK = "press_button"
+SMOKE = paper.BUDGETS["smoke"]
 
 
 @pytest.fixture(scope="module")
@@ -27,25 +33,9 @@ def tiny(tmp_path_factory):
     args = paper.EntropyArgs(budget="smoke", tasks=(TASK,), seeds=(0,), runs=str(root / "runs"),
                              results=str(root / "results"), data=str(root / "data"), progress=False)
     targs = paper.train_args(args, TASK, "state", (), 0)
-    summary = train_main(targs)
-    assert summary["steps"] == paper.BUDGETS["smoke"].train.num_steps
+    summary = train(targs)
+    assert summary["steps"] == SMOKE.train.num_steps
     return args, targs.out_dir()
-
-
-@contextlib.contextmanager
-def xla_compiles():
-    """Names of the functions XLA compiles inside the block."""
-    names = []
-
-    def listener(event, duration, **kwargs):
-        if event == "/jax/core/compile/backend_compile_duration":
-            names.append(str(kwargs.get("fun_name", "")))
-
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:
-        yield names
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
 
 
 def _load(path):
@@ -64,57 +54,75 @@ def _check_summary(s: dict, max_steps: int):
 
 def test_evaluate_writes_json_trace_and_video(tiny):
     _, run = tiny
-    opts = paper.BUDGETS["smoke"].eval
-    misses = rollout.compiled_rollout.cache_info().misses
-    with xla_compiles() as compiled:
-        report = evaluate.main(evaluate.EvaluateArgs(checkpoint=run, episodes=opts.episodes,
-                                                     num_samples=opts.num_samples, num_steps=opts.num_steps,
-                                                     video_height=48, video_width=64))
-    # both evaluations and the video reuse the rollout the training's final evaluation compiled
-    assert rollout.compiled_rollout.cache_info().misses == misses and "jit(episode)" not in compiled
+    # --inference.* default to the run's inference.json (the smoke budget's N=4, DDIM 2)
+    args = parse_with_run_inference(evaluate.EvaluateArgs, ["--checkpoint", run, "--episodes", "3",
+                                                            "--video-height", "48", "--video-width", "64"])
+    assert args.inference == SMOKE.inference
+    report = evaluate.main(args)
     out = os.path.join(run, "eval")
-    for name in ("eval.json", "entropy_trace.png", "rollout.gif"):
-        assert os.path.getsize(os.path.join(out, name)) > 0
+    video = report["files"]["video"]
+    assert video.endswith(".mp4")  # imageio-ffmpeg is a dependency
+    for path in (os.path.join(out, "eval.json"), os.path.join(out, "entropy_trace.png"), video):
+        assert os.path.getsize(path) > 0
     saved = _load(os.path.join(out, "eval.json"))
-    assert saved["task"] == TASK and saved["episodes"] == opts.episodes
+    assert saved["task"] == TASK and saved["episodes"] == 3 and saved["inference"]["num_samples"] == 4
     assert saved["thresholds"] == _load(os.path.join(run, "calibration.json"))["thresholds"]
     assert saved["thresholds_source"] == "calibration.json"
-    max_steps = rollout._make(TASK).max_steps
+    max_steps = envs.make(TASK).max_steps
     for key in ("with_eg", "without_eg"):
         _check_summary(saved[key], max_steps)
     assert saved["without_eg"]["stride1_frac"] == 1.0  # w/o entropy guidance: always the highest frequency
-    assert report["steps_ratio"] > 0 and 0 <= saved["video_episode"] < opts.episodes
+    assert report["steps_ratio"] > 0 and 0 <= saved["video_episode"] < 3
     # the video is the recorded episode of the batched rollout: the reset frame plus one frame per step
-    frames = imageio.mimread(os.path.join(out, "rollout.gif"))
-    assert len(frames) == saved["with_eg"]["steps"][saved["video_episode"]] + 1
+    reader = imageio.get_reader(video)
+    assert reader.count_frames() == saved["with_eg"]["steps"][saved["video_episode"]] + 1
+    assert reader.get_data(0).shape == (48, 64, 3)
+    reader.close()
 
 
 def test_evaluate_checkpoints_dir_and_threshold_override(tiny, tmp_path):
     _, run = tiny
-    opts = paper.BUDGETS["smoke"].eval
     # inner thresholds above any entropy: entropy guidance picks stride 1 everywhere, like w/o EG
-    args = tyro.cli(evaluate.EvaluateArgs, args=[
-        "--checkpoint", os.path.join(run, "checkpoints"), "--episodes", str(opts.episodes), "--num-samples",
-        str(opts.num_samples), "--num-steps", str(opts.num_steps), "--thresholds", "1e6", "2e6", "--no-video",
-        "--out", str(tmp_path / "ev")])
+    args = parse_with_run_inference(evaluate.EvaluateArgs, [
+        "--checkpoint", os.path.join(run, "checkpoints"), "--episodes", "3", "--inference.thresholds", "1e6", "2e6",
+        "--video", "none", "--out", str(tmp_path / "ev")])
+    assert args.inference.num_samples == SMOKE.inference.num_samples  # the run's, with the override on top
     report = evaluate.main(args)
-    assert report["thresholds"] == [-math.inf, 1e6, 2e6, math.inf] and report["thresholds_source"] == "--thresholds"
+    assert report["thresholds"] == [-math.inf, 1e6, 2e6, math.inf]
+    assert report["thresholds_source"] == "inference.thresholds"
     assert report["with_eg"]["stride1_frac"] == 1.0 and "video" not in report["files"]
     assert report["with_eg"]["steps"] == report["without_eg"]["steps"]
     assert (tmp_path / "ev" / "eval.json").exists() and (tmp_path / "ev" / "entropy_trace.png").exists()
-    with pytest.raises(ValueError, match="thresholds"):
-        evaluate.main(evaluate.EvaluateArgs(checkpoint=run, thresholds=(1.0,), video=False, out=str(tmp_path)))
+    with pytest.raises(ValueError, match="inference.thresholds"):
+        evaluate.main(evaluate.EvaluateArgs(checkpoint=run, inference=dataclasses.replace(SMOKE.inference,
+                                                                                          thresholds=(1.0,)),
+                                            video="none", out=str(tmp_path)))
+
+
+def test_one_evaluator_two_checkpoints_one_compile(tiny):
+    """An ``Evaluator`` owns its compiled rollout: two checkpoints of a run, with and without entropy guidance, one
+    compile; a second ``Evaluator`` compiles on its own (there is no global cache)."""
+    _, run = tiny
+    first, last = load_run(run, 6), load_run(run, SMOKE.train.num_steps)
+    ev = make_evaluator(last, SMOKE.inference)
+    th = (-math.inf, -1.0, 1.0, math.inf)
+    results = [ev.evaluate(r.policy.params, r.policy.normalizer, 2, jax.random.key(0), th, guided)
+               for r in (first, last) for guided in (True, False)]
+    assert ev.traces == 1
+    assert all(r.steps.shape == (2,) for r in results)
+    other = make_evaluator(last, SMOKE.inference)
+    other.evaluate(last.policy.params, last.policy.normalizer, 2, jax.random.key(0), th)
+    assert other.traces == 1 and ev.traces == 1
 
 
 def test_calibrate_demos_reproduces_training_calibration(tiny, tmp_path, capsys):
     _, run = tiny
-    opts = paper.BUDGETS["smoke"].eval
-    record = calibrate.main(calibrate.CalibrateArgs(checkpoint=run, num_samples=opts.num_samples,
-                                                    num_steps=opts.num_steps, calib_windows=opts.calib_windows,
-                                                    out=str(tmp_path / "calibration.json")))
+    record = calibrate.main(parse_with_run_inference(calibrate.CalibrateArgs, [
+        "--checkpoint", run, "--out", str(tmp_path / "calibration.json")]))
     saved = _load(tmp_path / "calibration.json")
     trained = _load(os.path.join(run, "calibration.json"))
     np.testing.assert_allclose(saved["thresholds"], trained["thresholds"], rtol=1e-6)
+    assert saved["inference"] == trained["inference"]
     th = saved["thresholds"]
     assert len(th) == 4 and th[0] == -math.inf and th[-1] == math.inf and th[1] < th[2]
     assert saved["percentiles"] == [10.0, 70.0] and saved["source"] == "demos"
@@ -127,18 +135,17 @@ def test_calibrate_demos_reproduces_training_calibration(tiny, tmp_path, capsys)
 
 def test_calibrate_rollouts(tiny, tmp_path):
     _, run = tiny
-    opts = paper.BUDGETS["smoke"].eval
-    args = tyro.cli(calibrate.CalibrateArgs, args=[
-        "--checkpoint", run, "--source", "rollouts", "--percentiles", "20", "80", "--episodes", str(opts.episodes),
-        "--num-samples", str(opts.num_samples), "--num-steps", str(opts.num_steps),
+    args = parse_with_run_inference(calibrate.CalibrateArgs, [
+        "--checkpoint", run, "--source", "rollouts", "--inference.percentiles", "20", "80", "--episodes", "3",
         "--out", str(tmp_path / "c.json")])
     record = calibrate.main(args)
     th = record["thresholds"]
     assert record["percentiles"] == [20.0, 80.0] and th[0] < th[1] < th[2] < th[3]
-    env = rollout._make(TASK)
-    assert opts.episodes <= record["num_windows"] <= opts.episodes * math.ceil(env.max_steps / 8)
-    with pytest.raises(ValueError, match="percentiles"):
-        calibrate.main(calibrate.CalibrateArgs(checkpoint=run, percentiles=(50.0,), out=str(tmp_path / "x.json")))
+    env = envs.make(TASK)
+    assert 3 <= record["num_windows"] <= 3 * math.ceil(env.max_steps / 8)
+    with pytest.raises(ValueError, match="inference.percentiles"):
+        calibrate.main(calibrate.CalibrateArgs(checkpoint=run, inference=InferenceConfig(percentiles=(50.0,)),
+                                               out=str(tmp_path / "x.json")))
 
 
 def test_paper_parsing_and_command_round_trip():
@@ -219,9 +226,9 @@ def test_table_formatting_helpers():
 @pytest.mark.slow
 def test_record_trajectory_matches_batched_rollout():
     """``video.record_trajectory`` runs the evaluation's episode loop: same episode key, same outcome."""
-    from hipolicy_jax.envs import video
+    from hipolicy_jax.evaluation import rollout, video
 
-    env = rollout._make(TASK)
+    env = envs.make(TASK)
     policy_fn, init_fn = rollout.expert_policy(env, 8)
     key = jax.random.PRNGKey(3)
     res, rec = rollout.rollout_episodes(policy_fn, init_fn, env, 1, key, history_len=3, chunk_len=8)
@@ -253,15 +260,15 @@ def test_paper_entropy_smoke_reuses_trained_run(tiny):
 def test_env_camera_and_data_follow_the_encoder(tmp_path):
     """The env camera, the default demo path and the buffer check all follow the encoder config (image size, point
     count, rgb), so a non-default encoder trains on demos of its own resolution."""
-    from experiments.common import check_buffer, default_data_path, policy_env
     from hipolicy_jax.config import EncoderConfig
     from hipolicy_jax.data.replay_buffer import ReplayBuffer
+    from hipolicy_jax.envs.demos import check_buffer, default_data_path
 
     img = EncoderConfig(obs_type="image", image_size=40, crop_size=36)
     pts = EncoderConfig(obs_type="pointcloud", num_points=96, point_dims=6)
-    assert policy_env(TASK, img).obs_shapes == {"state": policy_env(TASK).obs_shapes["state"], "image": (40, 40, 3)}
-    assert policy_env(TASK, pts).obs_shapes["point_cloud"] == (96, 6)
-    assert policy_env(TASK, img) is policy_env(TASK, img)  # cached: compiled rollouts are reused
+    state_shape = envs.make_for_encoder(TASK).obs_shapes["state"]
+    assert envs.make_for_encoder(TASK, img).obs_shapes == {"state": state_shape, "image": (40, 40, 3)}
+    assert envs.make_for_encoder(TASK, pts).obs_shapes["point_cloud"] == (96, 6)
     assert default_data_path(TASK, EncoderConfig(), 100) == os.path.join("data", f"{TASK}_state_100.zarr")
     assert default_data_path(TASK, img, 7).endswith(f"{TASK}_state-image_40px_7.zarr")
     assert default_data_path(TASK, pts, 7).endswith(f"{TASK}_state-point_cloud_96pts-rgb_7.zarr")
@@ -281,11 +288,11 @@ def test_env_camera_and_data_follow_the_encoder(tmp_path):
 def test_train_args_vision_policies_read_proprioception_only():
     """An image / point-cloud policy picked on the command line reads the state's proprioception only (as DP / DP3),
     unless --privileged-state or an explicit state_dims says otherwise; state policies read everything."""
-    from experiments.train import TrainArgs
     from hipolicy_jax.envs.base import PROPRIO_DIM
+    from hipolicy_jax.runs.train import RunConfig
 
     def parse(*argv):
-        return tyro.cli(TrainArgs, args=list(argv)).policy.encoder.state_dims
+        return tyro.cli(RunConfig, args=list(argv)).policy.encoder.state_dims
 
     assert parse() is None
     assert parse("--policy.encoder.obs-type", "pointcloud") == PROPRIO_DIM == 4

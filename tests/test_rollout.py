@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from hipolicy_jax import envs
-from hipolicy_jax.envs import rollout
+from hipolicy_jax.evaluation import rollout
 
 CHUNK = 8
 HIST = 3
@@ -67,28 +67,36 @@ def test_policy_chunk_shape_is_checked():
 
     with pytest.raises(ValueError, match="chunk_len"):
         rollout.evaluate(bad, env, 2, jax.random.PRNGKey(0), history_len=HIST, chunk_len=CHUNK)
-    with pytest.raises(ValueError, match="chunk_len"):  # a failed check is not cached as passed
-        rollout.evaluate(bad, env, 2, jax.random.PRNGKey(0), history_len=HIST, chunk_len=CHUNK)
+    stateful, init_fn = rollout.stateless(bad, with_args=False)
+    ro = rollout.Rollout(env, stateful, init_fn, history_len=HIST, chunk_len=CHUNK)
+    for _ in range(2):  # a failed check is not remembered as passed
+        with pytest.raises(ValueError, match="chunk_len"):
+            ro(2, jax.random.PRNGKey(0))
+    assert ro.traces == 0  # rejected before anything compiled
 
 
-def test_policy_shape_check_traces_once_per_argument_shapes():
-    """The abstract shape check re-traces the policy only when the shapes of its traced arguments change."""
+def test_rollout_object_owns_its_compile_and_checks_shapes_once_per_argument_shapes():
+    """A ``Rollout`` compiles once for new arguments of the same shapes (trace counter), re-checks the policy's
+    shapes only when the shapes of its traced arguments change (that a second object compiles on its own, i.e. that
+    there is no global cache, is checked with the ``Evaluator`` in test_experiments.py)."""
     env = envs.make("press_button")
-    traces = []
+    policy_traces = []
 
     def scaled(obs_history, key, state, args):
-        traces.append(1)
-        return rollout.PolicyOutput(actions=jnp.zeros((CHUNK, 4)) * args["scale"].sum(), stride=jnp.int32(1),
+        policy_traces.append(1)
+        tcp = obs_history["state"][-1, :3]
+        action = jnp.concatenate([tcp, jnp.zeros((1,))]) * args["scale"].mean()
+        return rollout.PolicyOutput(actions=jnp.tile(action, (CHUNK, 1)), stride=jnp.int32(1),
                                     entropy=jnp.zeros(())), state
 
-    def check(args):
-        rollout.check_policy_shape(env, scaled, rollout._no_state, args, history_len=HIST, chunk_len=CHUNK)
-
-    check({"scale": np.ones(3, np.float32)})
-    check({"scale": jnp.full(3, 2.0)})  # same shape and dtype: cached
-    assert len(traces) == 1
-    check({"scale": np.ones(5, np.float32)})
-    assert len(traces) == 2
+    ro = rollout.Rollout(env, scaled, rollout._no_state, history_len=HIST, chunk_len=CHUNK, max_steps=8)
+    ro(2, jax.random.PRNGKey(0), {"scale": np.ones(3, np.float32)})
+    assert ro.traces == 1 and len(policy_traces) == 2  # one shape check + one trace of the compiled rollout
+    res, rec = ro(2, jax.random.PRNGKey(1), {"scale": np.full(3, 2.0, np.float32)})  # same shapes: no check, no trace
+    assert ro.traces == 1 and len(policy_traces) == 2
+    assert res.steps.shape == (2,) and rec.qpos.shape[:2] == (2, 9)
+    ro(2, jax.random.PRNGKey(1), {"scale": np.ones(5, np.float32)})  # new shapes: checked and compiled again
+    assert ro.traces == 2 and len(policy_traces) == 4
 
 
 @pytest.mark.slow

@@ -12,8 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hipolicy_jax.config import ChunkConfig, DiffusionConfig, PolicyConfig, SamplingConfig
-from hipolicy_jax.sampling import action_entropy, sample_jit, segment_of, select_frequency
+from hipolicy_jax.config import ChunkConfig, DiffusionConfig, InferenceConfig, PolicyConfig
+from hipolicy_jax.sampling import action_entropy, make_sampler, segment_of, select_frequency
 
 
 def test_entropy_two_samples_exact():
@@ -91,11 +91,16 @@ class AffineNormalizer:
         return x * self.scale
 
 
-def _cfg(n, thresholds=None, strides=(1, 2, 3), steps=10):
-    return PolicyConfig(chunk=ChunkConfig(strides=strides, chunk_len=4),
-                        diffusion=DiffusionConfig(prediction_type="sample", num_train_steps=steps,
-                                                  num_inference_steps=steps),
-                        sampling=SamplingConfig(num_samples=n, thresholds=thresholds))
+def _cfg(strides=(1, 2, 3), steps=10, objective="diffusion"):
+    return PolicyConfig(chunk=ChunkConfig(strides=strides, chunk_len=4), objective=objective,
+                        diffusion=DiffusionConfig(prediction_type="sample", num_train_steps=steps))
+
+
+def _sampler(net, n, steps=10, objective="diffusion", sampler="ddpm"):
+    """A compiled sampler of the fake network: every DDPM step (diffusion) or ``steps`` Euler steps (flow)."""
+    inference = InferenceConfig(num_samples=n, sampler=sampler if objective == "diffusion" else "euler",
+                                num_steps=steps)
+    return make_sampler(net, _cfg(steps=steps, objective=objective), 2, inference)
 
 
 def _obs(b=2, m=3):
@@ -103,33 +108,34 @@ def _obs(b=2, m=3):
 
 
 def test_sampler_shapes_and_collapsed_samples_give_closed_form_entropy():
-    net, cfg = FakeNet(), _cfg(8, thresholds=RELEASE)
+    net = FakeNet()
+    fn = _sampler(net, 8)
     params = {"w": jnp.float32(1.0), "v": jnp.float32(0.0)}  # x0 independent of noise → all samples equal
-    res = sample_jit(params, AffineNormalizer(jnp.float32(2.0)), _obs(), jax.random.key(0), net=net, cfg=cfg,
-                     action_dim=2)
+    res = fn(params, AffineNormalizer(jnp.float32(2.0)), _obs(), jax.random.key(0), RELEASE)
     assert res.chunks.shape == (2, 8, 12, 2) and res.actions.shape == (2, 4, 2)
     target = 2.0 * np.tanh(np.asarray(_obs()["state"]).mean(axis=(1, 2, 3)))
     np.testing.assert_allclose(np.asarray(res.chunks[:, :, 0, 0]), np.repeat(target[:, None], 8, 1), rtol=1e-5)
     h0 = 0.5 * math.log(1e-6)  # var = 0 → 0.5·log(2πe·0 + ε) ≈ -6.91
     np.testing.assert_allclose(np.asarray(res.entropy), [h0, h0], rtol=1e-5)
     np.testing.assert_array_equal(np.asarray(res.stride), [1, 1])  # -6.91 < -6 → short (stride 1)
-    res2 = sample_jit(params, AffineNormalizer(jnp.float32(2.0)), _obs(), jax.random.key(0), net=net, cfg=cfg,
-                      action_dim=2, thresholds=jnp.array([-jnp.inf, -8.0, -7.0, jnp.inf]))
+    res2 = fn(params, AffineNormalizer(jnp.float32(2.0)), _obs(), jax.random.key(0),
+              jnp.array([-jnp.inf, -8.0, -7.0, jnp.inf]))
     np.testing.assert_array_equal(np.asarray(res2.stride), [3, 3])  # same entropy, lower thresholds → long
 
 
-def test_sampler_deterministic_per_key_different_across_keys_and_no_retrace():
-    net, cfg = FakeNet(), _cfg(5)
+@pytest.mark.parametrize("objective", ["diffusion", "flow"])
+def test_sampler_deterministic_per_key_different_across_keys_and_no_retrace(objective):
+    net = FakeNet()
+    fn = _sampler(net, 5, objective=objective)
     params = {"w": jnp.float32(0.5), "v": jnp.float32(0.3)}
     norm = AffineNormalizer(jnp.float32(1.0))
-    a = sample_jit(params, norm, _obs(), jax.random.key(1), net=net, cfg=cfg, action_dim=2)
+    a = fn(params, norm, _obs(), jax.random.key(1))
     traces = net.traces
     assert traces > 0
-    b = sample_jit(params, norm, _obs(), jax.random.key(1), net=net, cfg=cfg, action_dim=2)
-    c = sample_jit(params, norm, _obs(), jax.random.key(2), net=net, cfg=cfg, action_dim=2)
-    d = sample_jit({"w": jnp.float32(0.7), "v": jnp.float32(0.3)}, norm, _obs(), jax.random.key(2), net=net,
-                   cfg=cfg, action_dim=2)
-    assert net.traces == traces, "equal shapes must not retrace"
+    b = fn(params, norm, _obs(), jax.random.key(1))
+    c = fn(params, norm, _obs(), jax.random.key(2))
+    d = fn({"w": jnp.float32(0.7), "v": jnp.float32(0.3)}, norm, _obs(), jax.random.key(2))
+    assert net.traces == traces and fn._cache_size() == 1, "equal shapes must not retrace"
     np.testing.assert_array_equal(np.asarray(a.chunks), np.asarray(b.chunks))
     assert not np.allclose(np.asarray(a.chunks), np.asarray(c.chunks))
     assert not np.allclose(np.asarray(c.chunks), np.asarray(d.chunks))
@@ -139,10 +145,36 @@ def test_sampler_deterministic_per_key_different_across_keys_and_no_retrace():
 
 
 def test_single_sample_skips_entropy_and_runs_highest_frequency():
-    net, cfg = FakeNet(), _cfg(1, thresholds=RELEASE)
-    res = sample_jit({"w": jnp.float32(0.5), "v": jnp.float32(0.3)}, AffineNormalizer(jnp.float32(1.0)), _obs(),
-                     jax.random.key(0), net=net, cfg=cfg, action_dim=2)
+    fn = _sampler(FakeNet(), 1)
+    res = fn({"w": jnp.float32(0.5), "v": jnp.float32(0.3)}, AffineNormalizer(jnp.float32(1.0)), _obs(),
+             jax.random.key(0), RELEASE)
     assert res.chunks.shape == (2, 1, 12, 2)
     assert np.all(np.isnan(np.asarray(res.entropy)))
     np.testing.assert_array_equal(np.asarray(res.stride), [1, 1])
     np.testing.assert_array_equal(np.asarray(res.actions), np.asarray(res.chunks[:, 0, 8:12]))
+
+
+@pytest.mark.parametrize("objective,sampler,steps", [("diffusion", "ddpm", 10), ("diffusion", "ddim", 3),
+                                                     ("diffusion", "ddim-clipped", 3), ("flow", "euler", 4),
+                                                     ("flow", "euler", 1)])
+def test_every_head_gives_the_same_result_shapes_and_entropy_semantics(objective, sampler, steps):
+    """One sampler for every head: the same ``SampleResult`` shapes; a network whose output does not depend on the
+    noisy input collapses all N samples (entropy 0.5·log ε, stride 1 with the release thresholds) for every head
+    (x0 = its output for diffusion, and for flow the Euler steps of a constant velocity u end at ε - u: N different
+    samples, so a finite entropy above the collapsed one)."""
+    net = FakeNet()
+    inference = InferenceConfig(num_samples=6, sampler=sampler, num_steps=steps)
+    cfg = _cfg(steps=10, objective=objective)
+    fn = make_sampler(net, cfg, 2, inference)
+    params = {"w": jnp.float32(1.0), "v": jnp.float32(0.0)}
+    res = fn(params, AffineNormalizer(jnp.float32(1.0)), _obs(), jax.random.key(0), RELEASE)
+    assert res.chunks.shape == (2, 6, 12, 2) and res.actions.shape == (2, 4, 2)
+    assert res.entropy.shape == res.stride.shape == res.freq_index.shape == (2,)
+    assert res.stride.dtype == jnp.int32 and np.isin(np.asarray(res.stride), [1, 2, 3]).all()
+    np.testing.assert_array_equal(np.asarray(res.actions),
+                                  np.asarray(segment_of(cfg.chunk, res.chunks[:, 0], res.freq_index)))
+    h = np.asarray(res.entropy)
+    if objective == "diffusion":
+        np.testing.assert_allclose(h, 0.5 * math.log(1e-6), rtol=1e-5)
+    else:
+        assert np.all(np.isfinite(h)) and np.all(h > 0.5 * math.log(1e-6) + 1.0)

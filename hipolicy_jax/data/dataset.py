@@ -119,3 +119,13 @@ class SequenceDataset:
             frames = self.arrays[key][self.obs_idx[idx]]
             obs[key] = image_to_float(frames) if frames.dtype == np.uint8 else frames
         return {"obs": obs, "action": self.arrays["action"][self.act_idx[idx]]}
+
+
+def train_heldout_datasets(buffer: ReplayBuffer, chunk: ChunkConfig, obs_keys: Sequence[str], val_ratio: float,
+                           seed: int, normalizer: Normalizer | None = None) -> tuple[SequenceDataset, SequenceDataset]:
+    """The one train / held-out split of a run: episodes split by ``split_episodes(val_ratio, seed)``; the held-out
+    dataset uses the training normaliser (or ``normalizer``, e.g. a checkpoint's, for both)."""
+    train_mask, val_mask = split_episodes(buffer.num_episodes, val_ratio, seed)
+    train = SequenceDataset(buffer, chunk, obs_keys=obs_keys, episode_mask=train_mask, normalizer=normalizer)
+    val = SequenceDataset(buffer, chunk, obs_keys=obs_keys, episode_mask=val_mask, normalizer=train.normalizer)
+    return train, val

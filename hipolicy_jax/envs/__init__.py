@@ -1,11 +1,14 @@
 """MJX task suite for hipolicy_jax: registry of tasks.
 
-``make(task_name, **overrides) -> MjxEnv`` builds a task; ``TASKS`` lists the names. See ``base.py`` for the API.
+``make(task_name, **overrides) -> MjxEnv`` builds a task; ``TASKS`` lists the names; ``make_for_encoder`` builds a
+task computing the observations a policy's encoder reads (with its camera). See ``base.py`` for the API.
 """
 
 from __future__ import annotations
 
+from hipolicy_jax.config import EncoderConfig
 from hipolicy_jax.envs.base import ExpertPlan, MjxEnv, State
+from hipolicy_jax.envs.camera import CameraConfig
 from hipolicy_jax.envs.latch_door import LatchDoor
 from hipolicy_jax.envs.pick_place import PickPlace
 from hipolicy_jax.envs.press_button import PressButton
@@ -20,6 +23,9 @@ _REGISTRY: dict[str, type[MjxEnv]] = {
 
 TASKS: tuple[str, ...] = tuple(_REGISTRY)
 
+# Which tasks need tight end-effector tolerances (the paper's precise / non-precise split); the one place it lives.
+TASK_PRECISE: dict[str, bool] = {"press_button": True, "stack_cubes": True, "latch_door": False, "pick_place": False}
+
 
 def make(task_name: str, **overrides) -> MjxEnv:
     """Build the task ``task_name`` (one of ``TASKS``); ``overrides`` go to its constructor (control_dt, max_steps,
@@ -29,4 +35,22 @@ def make(task_name: str, **overrides) -> MjxEnv:
     return _REGISTRY[task_name](**overrides)
 
 
-__all__ = ["TASKS", "make", "MjxEnv", "State", "ExpertPlan"]
+def encoder_env_kwargs(encoder: EncoderConfig) -> dict:
+    """``make`` / ``collect_demos`` keywords for a policy with this encoder: the ``obs_keys`` it reads and, for
+    vision, the ``camera`` (``camera.CameraConfig``): images of ``image_size`` pixels square, or ``num_points`` points
+    (with rgb when ``point_dims == 6``) cast from the default camera resolution."""
+    kwargs: dict = {"obs_keys": encoder.obs_keys}
+    if encoder.obs_type == "image":
+        kwargs["camera"] = CameraConfig(height=encoder.image_size, width=encoder.image_size)
+    elif encoder.obs_type == "pointcloud":
+        kwargs["camera"] = CameraConfig(num_points=encoder.num_points, point_rgb=encoder.point_dims == 6)
+    return kwargs
+
+
+def make_for_encoder(task_name: str, encoder: EncoderConfig = EncoderConfig(), **overrides) -> MjxEnv:
+    """``make`` with the observations (and camera) a policy with ``encoder`` reads (``encoder_env_kwargs``)."""
+    return make(task_name, **{**encoder_env_kwargs(encoder), **overrides})
+
+
+__all__ = ["TASKS", "TASK_PRECISE", "make", "make_for_encoder", "encoder_env_kwargs", "MjxEnv", "State",
+           "ExpertPlan"]

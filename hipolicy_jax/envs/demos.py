@@ -1,14 +1,15 @@
-"""Scripted-expert demonstrations: one jitted, vmapped rollout per batch of episodes.
+"""Scripted-expert demonstrations: one jitted, vmapped rollout per batch of episodes, cached on disk as zarr.
 
-``expert_rollout(task, batch_size, ...)`` returns a (cached) jitted function ``keys (B, 2) -> ExpertTrace`` that
-runs the expert of every episode for the task's full step limit; finished episodes are frozen. ``collect_demos``
-splits the traces at each episode's end (its success step) into time-first numpy episodes ready for
-``ReplayBuffer.from_episodes``.
+``expert_rollout(task, batch_size, ...)`` returns a jitted function ``keys (B, 2) -> ExpertTrace`` that runs the
+expert of every episode for the task's full step limit; finished episodes are frozen. ``collect_demos`` compiles it
+once and splits the traces at each episode's end (its success step) into time-first numpy episodes ready for
+``ReplayBuffer.from_episodes``. ``load_or_collect`` reuses a demo buffer on disk (checked against the policy's
+encoder) or collects and saves one at ``default_data_path``.
 """
 
 from __future__ import annotations
 
-import functools
+import os
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -17,6 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from hipolicy_jax import envs as envs_lib
+from hipolicy_jax.config import EncoderConfig
+from hipolicy_jax.data.replay_buffer import ReplayBuffer
 
 
 class ExpertTrace(NamedTuple):
@@ -34,14 +37,9 @@ class ExpertTrace(NamedTuple):
 
 def expert_rollout(task: str, batch_size: int, obs_keys: tuple[str, ...] = ("state",),
                    **overrides) -> Callable[[jax.Array], ExpertTrace]:
-    """Jitted ``keys (batch_size, 2) -> ExpertTrace`` for the expert of ``task`` (cached per arguments, so
-    repeated calls with the same task, batch size, observation keys and overrides reuse one compilation)."""
-    return _expert_rollout(task, int(batch_size), tuple(obs_keys), tuple(sorted(overrides.items())))
-
-
-@functools.lru_cache(maxsize=16)
-def _expert_rollout(task, batch_size, obs_keys, overrides):
-    env = envs_lib.make(task, obs_keys=obs_keys, **dict(overrides))
+    """Jitted ``keys (batch_size, 2) -> ExpertTrace`` for the expert of ``task`` (the function owns its compile:
+    keep it to run more batches). ``run.env`` is the env, ``run.jitted`` the jitted rollout."""
+    env = envs_lib.make(task, obs_keys=tuple(obs_keys), **overrides)
 
     def one(key):
         k_reset, k_plan = jax.random.split(key)
@@ -99,3 +97,49 @@ def collect_demos(task: str, num_episodes: int, key: jax.Array, obs_keys: tuple[
         raise RuntimeError(f"collect_demos: the {task} expert produced only {len(episodes)} successful episodes "
                            f"of the {num_episodes} asked for in {max_batches} batches of {batch_size}")
     return episodes
+
+
+def default_data_path(task: str, encoder: EncoderConfig, episodes: int) -> str:
+    """``data/<task>_<obs keys>[_<camera>]_<episodes>.zarr``: the camera part (``84px``, ``512pts``, ``512pts-rgb``)
+    appears for image and point-cloud encoders, so buffers of different resolutions never collide."""
+    cam = {"state": "", "image": f"_{encoder.image_size}px",
+           "pointcloud": f"_{encoder.num_points}pts" + ("-rgb" if encoder.point_dims == 6 else "")}[encoder.obs_type]
+    return os.path.join("data", f"{task}_{'-'.join(encoder.obs_keys)}{cam}_{episodes}.zarr")
+
+
+# Which config field sets each camera key's per-frame shape (for error messages).
+_FRAME_FIELDS = {"image": "policy.encoder.image_size", "point_cloud": "policy.encoder.num_points / point_dims"}
+
+
+def check_buffer(buffer: ReplayBuffer, encoder: EncoderConfig, path: str) -> None:
+    """Raise ``ValueError`` naming the key, the expected and the actual per-frame shape if ``buffer`` lacks a key
+    the encoder reads or holds images / point clouds of another size than the encoder's."""
+    keys = encoder.obs_keys
+    missing = [k for k in (*keys, "action") if k not in buffer.data]
+    if missing:
+        raise ValueError(f"{path}: lacks keys {missing} (has {sorted(buffer.data)}); collect with those obs")
+    expected = {"image": (encoder.image_size, encoder.image_size, 3),
+                "point_cloud": (encoder.num_points, encoder.point_dims)}
+    for key in keys:
+        if key in expected and tuple(buffer.data[key].shape[1:]) != expected[key]:
+            raise ValueError(f"{path}: data/{key} has frames of shape {tuple(buffer.data[key].shape[1:])}, the "
+                             f"encoder expects {expected[key]}; set {_FRAME_FIELDS[key]} to match, or pass another "
+                             f"--data (a missing one is collected with the encoder's camera)")
+
+
+def load_or_collect(task: str, encoder: EncoderConfig, episodes: int, path: str, seed: int = 0,
+                    progress: bool = True) -> ReplayBuffer:
+    """Reuse the dataset at ``path`` (checked against ``encoder``: keys and frame shapes) or collect ``episodes``
+    expert demos of ``task`` with the encoder's observations and camera and save them there."""
+    if os.path.exists(path):
+        buffer = ReplayBuffer.load(path)
+        check_buffer(buffer, encoder, path)
+        return buffer
+    if progress:
+        print(f"collecting {episodes} expert demos of {task} → {path}")
+    kwargs = envs_lib.encoder_env_kwargs(encoder)
+    episodes_data = collect_demos(task, episodes, jax.random.key(seed), kwargs.pop("obs_keys"), **kwargs)
+    buffer = ReplayBuffer.from_episodes(episodes_data)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    buffer.save(path)
+    return buffer

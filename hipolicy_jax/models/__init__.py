@@ -14,7 +14,7 @@ from hipolicy_jax.models.unet import (
     ConditionalUnet1D,
     Conv1dBlock,
     SegmentFusion,
-    SinusoidalPosEmb,
+    StepEncoder,
 )
 
 __all__ = [
@@ -26,7 +26,7 @@ __all__ = [
     "PointCloudEncoder",
     "PolicyNet",
     "SegmentFusion",
-    "SinusoidalPosEmb",
+    "StepEncoder",
     "SpatialSoftmax",
     "StateEncoder",
     "crop_images",

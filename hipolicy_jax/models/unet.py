@@ -70,13 +70,17 @@ def sinusoidal_embedding(t: jax.Array, dim: int) -> jax.Array:
     return jnp.concatenate([jnp.sin(arg), jnp.cos(arg)], axis=-1)
 
 
-class SinusoidalPosEmb(nn.Module):
-    """Diffusion Policy's sinusoidal step embedding: ``(B,) -> (B, dim)`` (``[sin, cos]``, base 10000)."""
+class StepEncoder(nn.Module):
+    """Diffusion Policy's diffusion-step encoder: ``SinusoidalPosEmb(d) -> Dense(4d) -> Mish -> Dense(d)``,
+    ``(...,) -> (..., d)``. Its layers are named ``step_dense0`` / ``step_dense1``; the U-Net shares its scope, so
+    they sit at the U-Net's top level, as before this module existed."""
 
     dim: int
 
+    @nn.compact
     def __call__(self, t: jax.Array) -> jax.Array:
-        return sinusoidal_embedding(t, self.dim)
+        step = nn.Dense(4 * self.dim, name="step_dense0")(sinusoidal_embedding(t, self.dim))
+        return nn.Dense(self.dim, name="step_dense1")(mish(step))
 
 
 class FiLMInput(NamedTuple):
@@ -339,12 +343,11 @@ class ConditionalUnet1D(nn.Module):
         return {name: film_cond_part(params[name]["film"], cond) for name, _, _ in self.block_specs()}
 
     def film_steps(self, timesteps: jax.Array) -> dict[str, jax.Array]:
-        """Step half of every block's FiLM: timesteps ``(S,)`` -> ``{block: (S, 2C)}`` = ``mish(step_mlp(t))·W_t``."""
+        """Step half of every block's FiLM: timesteps ``(S,)`` -> ``{block: (S, 2C)}`` = ``mish(StepEncoder(t))·W_t``.
+        Reads the bound parameters (call through ``apply``)."""
         params = self.variables["params"]
-        d = self.step_embed_dim
-        dense0, dense1 = params["step_dense0"], params["step_dense1"]
-        step = sinusoidal_embedding(timesteps, d) @ dense0["kernel"] + dense0["bias"]  # as nn.Dense(4d)
-        step = mish(step) @ dense1["kernel"] + dense1["bias"]  # (S, d), as nn.Dense(d)
+        step = StepEncoder(self.step_embed_dim, parent=None).apply(  # unbound: not a submodule
+            {"params": {k: params[k] for k in ("step_dense0", "step_dense1")}}, timesteps)  # (S, d)
         return {name: film_step_part(params[name]["film"], step) for name, _, _ in self.block_specs()}
 
     @nn.compact
@@ -361,11 +364,9 @@ class ConditionalUnet1D(nn.Module):
             raise ValueError(f"x: expected shape (B, M*L_c={self.num_freqs * self.chunk_len}, A), got {x.shape}")
         b, _, a = x.shape
         if film is None:
-            d = self.step_embed_dim
-            t = jnp.broadcast_to(jnp.asarray(timesteps), (b,))
-            step = SinusoidalPosEmb(d)(t)
-            step = nn.Dense(4 * d, name="step_dense0")(step)
-            step = nn.Dense(d, name="step_dense1")(mish(step))  # (B, d)
+            step_encoder = StepEncoder(self.step_embed_dim)
+            nn.share_scope(self, step_encoder)  # its Dense layers live at the U-Net's top level
+            step = step_encoder(jnp.broadcast_to(jnp.asarray(timesteps), (b,)))  # (B, d)
             film_in = FiLMInput(step, self._film_cond(cond))
             films = {name: film_in for name, _, _ in self.block_specs()}
         else:

@@ -6,8 +6,8 @@ otherwise from the jitted ray-cast camera (``camera.py``). The rollout is the ev
 are rendered afterwards on the host. ``trajectory_from_rollout`` takes an episode of a batched evaluation
 (``rollout.rollout_episodes``) instead, so a video of an evaluated policy needs no second compile.
 
-    python -m hipolicy_jax.envs.video --task latch_door --output door.gif
-    python -m hipolicy_jax.envs.video --task press_button --stride 2 --output press_x2.gif
+    python -m hipolicy_jax.evaluation.video --task latch_door --output door.gif
+    python -m hipolicy_jax.evaluation.video --task press_button --stride 2 --output press_x2.gif
 """
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ from mujoco import mjx
 
 from hipolicy_jax import envs as envs_lib
 from hipolicy_jax.envs import camera as camera_lib
-from hipolicy_jax.envs import rollout
-from hipolicy_jax.envs.base import MjxEnv
+from hipolicy_jax.evaluation import rollout
+from hipolicy_jax.envs.base import ASSETS_DIR, MjxEnv
 
 
 class Trajectory(NamedTuple):
@@ -83,7 +83,7 @@ def opengl_available() -> bool:
 
 
 def _episode_mj_model(env: MjxEnv, body_pos: np.ndarray) -> mujoco.MjModel:
-    model = mujoco.MjModel.from_xml_path(os.path.join(os.path.dirname(__file__), "assets", env.xml_file))
+    model = mujoco.MjModel.from_xml_path(os.path.join(ASSETS_DIR, env.xml_file))
     for name, pos in zip(env.randomised_bodies, body_pos):
         model.body(name).pos[:] = pos
     return model
@@ -159,6 +159,27 @@ def annotate_frames(frames: np.ndarray, traj: Trajectory) -> np.ndarray:
     return np.stack(out)
 
 
+def ffmpeg_available() -> bool:
+    """Whether imageio can write mp4 (the ``imageio-ffmpeg`` backend and its bundled ffmpeg binary)."""
+    try:
+        import imageio_ffmpeg
+
+        return os.path.exists(imageio_ffmpeg.get_ffmpeg_exe())
+    except Exception:  # noqa: BLE001 - not installed, or no binary for this platform
+        return False
+
+
+def resolve_format(fmt: str = "auto") -> str:
+    """'mp4', 'gif' or 'none' for a requested video format: 'auto' is mp4 when ffmpeg is available, else gif."""
+    if fmt not in ("auto", "mp4", "gif", "none"):
+        raise ValueError(f"video format: must be 'auto', 'mp4', 'gif' or 'none', got {fmt!r}")
+    if fmt == "auto":
+        return "mp4" if ffmpeg_available() else "gif"
+    if fmt == "mp4" and not ffmpeg_available():
+        raise ValueError("video format: mp4 needs the ffmpeg backend (pip install imageio-ffmpeg); use gif")
+    return fmt
+
+
 def save_video(frames: np.ndarray, path: str, fps: float) -> str:
     """Write frames (T, H, W, 3) uint8 to ``path`` (.gif, or .mp4 with imageio-ffmpeg); returns the path."""
     import imageio.v2 as imageio
@@ -169,6 +190,20 @@ def save_video(frames: np.ndarray, path: str, fps: float) -> str:
     else:
         imageio.mimsave(path, list(frames), fps=fps)
     return path
+
+
+def save_episode_video(env: MjxEnv, result: rollout.EvalResult, recording: rollout.Recording, chunk_len: int,
+                       path: str, *, episode: int | None = None, backend: str = "auto", height: int = 240,
+                       width: int = 320) -> tuple[str, int]:
+    """Render one episode of a recorded batched rollout (default: the first successful one, else episode 0),
+    annotated with stride and entropy → (path, episode index)."""
+    if episode is None:
+        success = np.asarray(result.success)
+        episode = int(np.argmax(success)) if success.any() else 0
+    traj = trajectory_from_rollout(result, recording, episode, chunk_len)
+    frames = render_frames(env, traj, height=height, width=width, backend=backend)
+    save_video(annotate_frames(frames, traj), path, 1.0 / env.control_dt)
+    return path, episode
 
 
 def main(argv=None):

@@ -14,9 +14,11 @@ Policies with memory (the scripted expert) use ``evaluate_stateful`` with
 ``policy_fn(obs_history, key, policy_state, policy_args) -> (PolicyOutput, policy_state)`` and
 ``init_fn(first_obs, key) -> policy_state``.
 
-Compilation is cached: ``policy_args`` (e.g. network parameters, normaliser, thresholds) is a traced pytree passed
-to ``policy_fn(obs_history, key, policy_args)``, so evaluating new parameters with the same ``policy_fn`` object
-reuses the compiled rollout instead of recompiling (20–50 s a task on a CPU).
+A ``Rollout`` object owns one compiled batched rollout: ``policy_args`` (e.g. network parameters, normaliser,
+thresholds) is a traced pytree passed to ``policy_fn(obs_history, key, policy_args)``, so calling the same
+``Rollout`` with new parameters reuses its compile (20–50 s a task on a CPU). The functions ``evaluate`` /
+``evaluate_stateful`` / ``rollout_episodes`` build a fresh ``Rollout`` per call, for one-off evaluations; there is
+no global cache.
 
 All episodes run in one jitted rollout: ``lax.scan`` over replans, an inner ``lax.scan`` over the chunk's steps.
 An episode is frozen (env state, history and policy state masked) once it is done or reaches the step limit.
@@ -28,7 +30,6 @@ so one compiled rollout serves scoring (``evaluate``), traces and videos (``roll
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -98,14 +99,8 @@ def _select(pred: jax.Array, new, old):
     return jax.tree.map(lambda a, b: jnp.where(pred, a, b), new, old)
 
 
-@functools.lru_cache(maxsize=16)
-def _make(task: str) -> MjxEnv:
-    return envs_lib.make(task)
-
-
 def _resolve(task: str | MjxEnv) -> MjxEnv:
-    """Envs are immutable, so one instance per task name keeps compiled rollouts cacheable."""
-    return _make(task) if isinstance(task, str) else task
+    return envs_lib.make(task) if isinstance(task, str) else task
 
 
 def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *, history_len: int,
@@ -113,7 +108,7 @@ def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *
                     record_obs: tuple[str, ...] = ()) -> Callable[[jax.Array, Any], tuple]:
     """The un-batched, un-jitted rollout of one episode: ``episode(key, policy_args) -> (final State, entropy (R,),
     stride (R,), valid (R,))``, plus a ``Recording`` (qpos and the ``record_obs`` observations of every control
-    step) as a fifth element when ``record``. ``compiled_rollout`` vmaps and jits it; ``video`` jits it alone."""
+    step) as a fifth element when ``record``. ``Rollout`` vmaps and jits it; ``video`` jits it alone."""
     if history_len < 1 or chunk_len < 1:
         raise ValueError(f"history_len and chunk_len must be >= 1, got {history_len}, {chunk_len}")
     missing = [k for k in record_obs if k not in env.obs_keys]
@@ -168,65 +163,85 @@ def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *
 
 def check_policy_shape(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, policy_args, *,
                        history_len: int, chunk_len: int) -> None:
-    """Check the policy's chunk shape abstractly (no compile), once per setting and shapes of ``policy_args``."""
-    leaves, treedef = jax.tree.flatten(policy_args)
-    signature = tuple((tuple(jnp.shape(x)), x.dtype if hasattr(x, "dtype") else jnp.result_type(x)) for x in leaves)
-    _check_policy_shape(env, policy_fn, init_fn, treedef, signature, history_len, chunk_len)
-
-
-@functools.lru_cache(maxsize=64)
-def _check_policy_shape(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, treedef, signature,
-                        history_len: int, chunk_len: int) -> None:
+    """Check the policy's chunk shape abstractly (``jax.eval_shape``, no compile)."""
     def probe(key, args):
         state = env.reset(key)
         hist = init_history(state.obs, history_len)
         return policy_fn(hist, key, init_fn(state.obs, key), args)[0]
 
-    args = jax.tree.unflatten(treedef, [jax.ShapeDtypeStruct(shape, dtype) for shape, dtype in signature])
-    out = jax.eval_shape(probe, jax.random.PRNGKey(0), args)
+    out = jax.eval_shape(probe, jax.random.PRNGKey(0), policy_args)
     if out.actions.shape != (chunk_len, env.action_dim):
         raise ValueError(f"policy_fn: actions must have shape (chunk_len={chunk_len}, A={env.action_dim}), "
                          f"got {out.actions.shape}")
 
 
-@functools.lru_cache(maxsize=32)
-def compiled_rollout(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, history_len: int, chunk_len: int,
-                     max_steps: int | None):
-    """``jit(vmap(episode))(keys (E,), policy_args) -> (State, entropy, stride, valid, Recording)`` (qpos recorded),
-    cached per (env, policy_fn, init_fn, shapes)."""
-    episode = make_episode_fn(env, policy_fn, init_fn, history_len=history_len, chunk_len=chunk_len,
-                              max_steps=max_steps, record=True)
-    return jax.jit(jax.vmap(episode, in_axes=(0, None)))
+def _signature(tree) -> tuple:
+    leaves, treedef = jax.tree.flatten(tree)
+    return treedef, tuple((tuple(jnp.shape(x)), jnp.result_type(x)) for x in leaves)
+
+
+class Rollout:
+    """One compiled batched rollout of a (stateful) policy in one env: ``jit(vmap(episode))`` over episode keys.
+
+    ``rollout(num_episodes, key, policy_args) -> (EvalResult, Recording)`` (qpos recorded). The object owns its
+    compiled program: calls with new ``policy_args`` of the same shapes (new parameters, thresholds) and the same
+    number of episodes reuse it. ``traces`` counts how often the episode was traced (one per compile).
+
+    With several devices the episodes are sharded across them (when their count divides ``num_episodes``; otherwise
+    everything runs on one device) and ``policy_args`` is replicated.
+    """
+
+    def __init__(self, env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *, history_len: int,
+                 chunk_len: int, max_steps: int | None = None):
+        self.env, self.policy_fn, self.init_fn = env, policy_fn, init_fn
+        self.history_len, self.chunk_len, self.max_steps = history_len, chunk_len, max_steps
+        self.traces = 0
+        episode = make_episode_fn(env, policy_fn, init_fn, history_len=history_len, chunk_len=chunk_len,
+                                  max_steps=max_steps, record=True)
+
+        def rollout_episode(key, policy_args):
+            self.traces += 1
+            return episode(key, policy_args)
+
+        self._jitted = jax.jit(jax.vmap(rollout_episode, in_axes=(0, None)))
+        self._checked: set = set()
+
+    def __call__(self, num_episodes: int, key: jax.Array, policy_args=()) -> tuple[EvalResult, Recording]:
+        signature = _signature(policy_args)
+        if signature not in self._checked:
+            check_policy_shape(self.env, self.policy_fn, self.init_fn, policy_args, history_len=self.history_len,
+                               chunk_len=self.chunk_len)
+            self._checked.add(signature)
+        keys = jax.random.split(key, num_episodes)
+        mesh = parallel.make_mesh()
+        if mesh is not None and num_episodes % mesh.size == 0:
+            keys = parallel.shard_batch(keys, mesh)
+            policy_args = parallel.replicate(policy_args, mesh)
+        else:
+            keys = jax.device_put(keys)
+        state, entropy, stride, valid, recording = self._jitted(keys, policy_args)
+        return score(state, entropy, stride, valid), recording
+
+
+def score(state, entropy, stride, valid) -> EvalResult:
+    """``EvalResult`` of a batch of final env states and the per-replan traces."""
+    success, steps = state.success, state.step
+    n_succ = success.sum()
+    mean_steps = jnp.where(n_succ > 0, jnp.sum(jnp.where(success, steps, 0)) / jnp.maximum(n_succ, 1), jnp.nan)
+    return EvalResult(success_rate=success.mean(dtype=jnp.float32),
+                      mean_steps_success=mean_steps.astype(jnp.float32), success=success, steps=steps,
+                      entropy=entropy, stride=stride, valid=valid)
 
 
 def rollout_episodes(policy_fn: StatefulPolicyFn, init_fn: InitFn, task: str | MjxEnv, num_episodes: int,
                      key: jax.Array, *, history_len: int, chunk_len: int, max_steps: int | None = None,
                      policy_args=()) -> tuple[EvalResult, Recording]:
-    """``evaluate_stateful`` that also returns the batched ``Recording`` (qpos (E, T+1, nq), body_pos (E, n, 3)) of
-    the same compiled rollout, e.g. to render a video of an evaluated episode without another compile.
-
-    With several devices the episodes are sharded across them (when their count divides ``num_episodes``; otherwise
-    everything runs on one device) and ``policy_args`` is replicated.
-    """
-    env = _resolve(task)
-    check_policy_shape(env, policy_fn, init_fn, policy_args, history_len=history_len, chunk_len=chunk_len)
-    rollout = compiled_rollout(env, policy_fn, init_fn, history_len, chunk_len, max_steps)
-    keys = jax.random.split(key, num_episodes)
-    mesh = parallel.make_mesh()
-    if mesh is not None and num_episodes % mesh.size == 0:
-        keys = parallel.shard_batch(keys, mesh)
-        policy_args = parallel.replicate(policy_args, mesh)
-    else:
-        keys = jax.device_put(keys)
-    state, entropy, stride, valid, recording = rollout(keys, policy_args)
-    success = state.success
-    steps = state.step
-    n_succ = success.sum()
-    mean_steps = jnp.where(n_succ > 0, jnp.sum(jnp.where(success, steps, 0)) / jnp.maximum(n_succ, 1), jnp.nan)
-    result = EvalResult(success_rate=success.mean(dtype=jnp.float32),
-                        mean_steps_success=mean_steps.astype(jnp.float32), success=success, steps=steps,
-                        entropy=entropy, stride=stride, valid=valid)
-    return result, recording
+    """One-off ``Rollout``: ``evaluate_stateful`` that also returns the batched ``Recording`` (qpos (E, T+1, nq),
+    body_pos (E, n, 3)), e.g. to render a video of an evaluated episode. Compiles on every call: keep a ``Rollout``
+    to evaluate repeatedly."""
+    rollout = Rollout(_resolve(task), policy_fn, init_fn, history_len=history_len, chunk_len=chunk_len,
+                      max_steps=max_steps)
+    return rollout(num_episodes, key, policy_args)
 
 
 def evaluate_stateful(policy_fn: StatefulPolicyFn, init_fn: InitFn, task: str | MjxEnv, num_episodes: int,
@@ -241,21 +256,14 @@ def _no_state(obs, key):
     return ()
 
 
-@functools.lru_cache(maxsize=32)
-def _as_stateful(policy_fn: Callable, with_args: bool) -> StatefulPolicyFn:
-    """A stable stateful wrapper per policy_fn (stable identity keeps ``compiled_rollout``'s cache warm)."""
+def stateless(policy_fn: Callable, with_args: bool = True) -> tuple[StatefulPolicyFn, InitFn]:
+    """``(policy_fn, init_fn)`` for ``Rollout`` / ``evaluate_stateful`` / ``make_episode_fn`` from a stateless
+    ``policy_fn(obs_history, key[, policy_args])``."""
     def stateful(history, key, pstate, args):
         out = policy_fn(history, key, args) if with_args else policy_fn(history, key)
         return out, pstate
 
-    return stateful
-
-
-def stateless(policy_fn: Callable, with_args: bool = True) -> tuple[StatefulPolicyFn, InitFn]:
-    """``(policy_fn, init_fn)`` for ``evaluate_stateful`` / ``rollout_episodes`` / ``make_episode_fn`` from a
-    stateless ``policy_fn(obs_history, key[, policy_args])``; the same objects as ``evaluate`` uses, so they share
-    its compiled rollouts."""
-    return _as_stateful(policy_fn, with_args), _no_state
+    return stateful, _no_state
 
 
 def evaluate(policy_fn: Callable, task: str | MjxEnv, num_episodes: int, key: jax.Array, *, history_len: int,
@@ -266,8 +274,8 @@ def evaluate(policy_fn: Callable, task: str | MjxEnv, num_episodes: int, key: ja
     policy_fn(obs_history, key, policy_args) when ``policy_args`` (a traced pytree) is given. ``max_steps``
     (default: the task's) caps each episode's control steps; an episode reaching it counts as a failure.
     """
-    stateful = _as_stateful(policy_fn, policy_args is not None)
-    return evaluate_stateful(stateful, _no_state, task, num_episodes, key, history_len=history_len,
+    stateful, init_fn = stateless(policy_fn, policy_args is not None)
+    return evaluate_stateful(stateful, init_fn, task, num_episodes, key, history_len=history_len,
                              chunk_len=chunk_len, max_steps=max_steps,
                              policy_args=() if policy_args is None else policy_args)
 

@@ -1,0 +1,37 @@
+"""Command-line parsing shared by the entry points that act on a trained run (``experiments.evaluate``,
+``experiments.calibrate``): their ``--inference.*`` flags default to the run's stored settings."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+from typing import TypeVar
+
+import tyro
+
+from hipolicy_jax.runs.store import read_inference, resolve_run
+
+T = TypeVar("T")
+
+
+def parse_with_run_inference(cls: type[T], argv: list[str] | None = None, description: str | None = None) -> T:
+    """``tyro.cli(cls)`` where ``cls`` has ``checkpoint: str`` and ``inference: InferenceConfig`` fields; the
+    defaults of ``--inference.*`` are the ``inference.json`` of the run ``--checkpoint`` names (when it has one),
+    so an evaluation reproduces the run's own settings unless a flag says otherwise."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--checkpoint")
+    known, _ = pre.parse_known_args(argv)
+    default = None
+    if known.checkpoint and os.path.isdir(known.checkpoint):
+        try:
+            stored = read_inference(resolve_run(known.checkpoint)[0])
+        except FileNotFoundError:
+            stored = None
+        if stored is not None:
+            field_defaults = {f.name: f.default for f in dataclasses.fields(cls)
+                              if f.default is not dataclasses.MISSING}
+            default = cls(**{**field_defaults, "checkpoint": known.checkpoint, "inference": stored})
+    return tyro.cli(cls, args=argv, default=default, description=description)

@@ -1,0 +1,181 @@
+"""Train a policy on an MJX task end to end: demos → train / held-out split → ``trainer.fit`` with periodic
+evaluation → calibration → outputs in the run directory.
+
+``RunConfig`` is everything one training run needs (``experiments.train`` exposes every field as a flag);
+``train(cfg)`` runs it (resuming from the last checkpoint), ``dry_run(cfg)`` validates it, ``ensure_trained(cfg)``
+trains only what is unfinished. One ``Evaluator`` serves every evaluation of the run (one compile).
+
+Outputs under ``cfg.out_dir()``: ``checkpoints/``, ``metrics.jsonl``, ``tb/``, ``inference.json`` (the inference
+settings of its evaluations), ``calibration.json`` and ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+
+import jax
+import numpy as np
+
+from hipolicy_jax.config import (ChunkConfig, EvalConfig, InferenceConfig, ModelConfig, PolicyConfig, TrainConfig,
+                                 replace)
+from hipolicy_jax.data.dataset import train_heldout_datasets
+from hipolicy_jax.envs.base import PROPRIO_DIM
+from hipolicy_jax.envs.demos import check_buffer, default_data_path, load_or_collect
+from hipolicy_jax.evaluation import calibration
+from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
+from hipolicy_jax.runs.store import Run, load_run, read_json, write_inference, write_json
+from hipolicy_jax.trainer import fit, run_keys
+
+# CPU-sized defaults: the paper's windowing (strides 1/2/3, L_h 3, L_c 8) with a small U-Net.
+CPU_POLICY = PolicyConfig(chunk=ChunkConfig(), model=ModelConfig(size="cpu"))
+CPU_TRAIN = TrainConfig(batch_size=64, num_steps=3000, lr=3e-4, warmup_steps=200, log_every=50, ckpt_every=500)
+# On a CPU: few samples and DDIM steps; the paper used N=100 and 100 DDPM steps.
+CPU_INFERENCE = InferenceConfig(num_samples=16, sampler="auto", num_steps=None)
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """One training run: task, data, policy, training, evaluation and inference settings, output directory."""
+
+    task: str = "press_button"
+    out: str = ""  # default runs/<task>_<obs_type>_seed<seed>
+    data: str = ""  # default data/<task>_<obs keys>[_<camera>]_<episodes>.zarr (collected when missing)
+    episodes: int = 100  # expert demos to collect (when --data does not exist)
+    val_ratio: float = 0.1  # held-out demo episodes (threshold calibration)
+    policy: PolicyConfig = CPU_POLICY
+    train: TrainConfig = CPU_TRAIN
+    eval: EvalConfig = EvalConfig()
+    inference: InferenceConfig = CPU_INFERENCE
+    progress: bool = True
+    dry_run: bool = False  # validate config and data, print shapes and parameter count, train nothing
+    num_devices: int | None = None  # data-parallel devices (default: all local devices)
+    final_eval: bool = True  # evaluate the trained policy at the end (paper tables evaluate on their own: with
+    # --eval.every 0 and --no-final-eval nothing is rolled out during training)
+    privileged_state: bool = False  # image / point-cloud policies also read the task state (object poses); by default
+    # they read proprioception only (policy.encoder.state_dims = 4, as DP / DP3), unless state_dims is set
+
+    def __post_init__(self):
+        enc = self.policy.encoder
+        if enc.obs_type != "state" and enc.state_dims is None and not self.privileged_state:
+            object.__setattr__(self, "policy", replace(self.policy, **{"encoder.state_dims": PROPRIO_DIM}))
+
+    def out_dir(self) -> str:
+        return self.out or os.path.join("runs", f"{self.task}_{self.policy.encoder.obs_type}_seed{self.train.seed}")
+
+    def data_path(self) -> str:
+        return self.data or default_data_path(self.task, self.policy.encoder, self.episodes)
+
+
+def dry_run(cfg: RunConfig) -> dict:
+    """Check the config and the dataset, print what training would see; nothing is trained or written."""
+    from hipolicy_jax import parallel
+    from hipolicy_jax.data.replay_buffer import ReplayBuffer
+    from hipolicy_jax.models.policy_net import init_policy_params, param_count
+
+    path = cfg.data_path()
+    mesh = parallel.make_mesh(cfg.num_devices)
+    parallel.check_batch_size(cfg.train.batch_size, mesh)
+    info = {"task": cfg.task, "data": path, "devices": 1 if mesh is None else mesh.size}
+    if not os.path.exists(path):
+        print(f"dataset {path} does not exist: training would first collect {cfg.episodes} expert demos of "
+              f"{cfg.task}")
+        return info
+    buffer = ReplayBuffer.load(path)
+    check_buffer(buffer, cfg.policy.encoder, path)
+    train_ds, val_ds = train_heldout_datasets(buffer, cfg.policy.chunk, cfg.policy.encoder.obs_keys, cfg.val_ratio,
+                                              cfg.train.seed)
+    if len(train_ds) < cfg.train.batch_size:
+        raise ValueError(f"train.batch_size: {cfg.train.batch_size} exceeds the {len(train_ds)} training windows")
+    batch = train_ds.get_batch(np.arange(2))
+    action_dim = int(batch["action"].shape[-1])
+    abstract = jax.eval_shape(lambda: init_policy_params(cfg.policy, action_dim, batch["obs"], jax.random.key(0)))
+    info.update(episodes=buffer.num_episodes, frames=buffer.num_frames, train_windows=len(train_ds),
+                heldout_windows=len(val_ds), param_count=param_count(abstract),
+                batch={"action": [cfg.train.batch_size, *batch["action"].shape[1:]],
+                       **{f"obs.{k}": [cfg.train.batch_size, *v.shape[1:]] for k, v in batch["obs"].items()}})
+    for k, v in info.items():
+        print(f"{k:>16}: {v}")
+    return info
+
+
+def train(cfg: RunConfig) -> dict:
+    """Train (or resume) the run, calibrate its thresholds, evaluate it; → the summary written to summary.json."""
+    out = cfg.out_dir()
+    os.makedirs(out, exist_ok=True)
+    t0 = time.perf_counter()
+    buffer = load_or_collect(cfg.task, cfg.policy.encoder, cfg.episodes, cfg.data_path(), seed=cfg.train.seed,
+                             progress=cfg.progress)
+    policy = cfg.policy
+    train_ds, val_ds = train_heldout_datasets(buffer, policy.chunk, policy.encoder.obs_keys, cfg.val_ratio,
+                                              cfg.train.seed)
+    print(f"data: {buffer.num_episodes} episodes, {buffer.num_frames} frames; {len(train_ds)} train / "
+          f"{len(val_ds)} held-out windows")
+    keys = run_keys(cfg.train.seed)
+    action_dim = int(buffer.data["action"].shape[-1])
+    evaluator = Evaluator(cfg.task, policy, action_dim, cfg.inference)
+    write_inference(out, cfg.inference)
+    last: dict = {}  # the latest in-training evaluation, reused when it ran on the final state
+
+    def calibrate(params):
+        # always keys["eval"]: at the final step this equals calibration.json's (and experiments.calibrate's)
+        return evaluator.calibrate(params, train_ds.normalizer, val_ds, keys["eval"])
+
+    def evaluate(params, thresholds, step):
+        res = evaluator.evaluate(params, train_ds.normalizer, cfg.eval.episodes,
+                                 jax.random.fold_in(keys["eval"], step), thresholds)
+        return eval_summary(res)
+
+    def eval_fn(state, step):
+        thresholds, entropies = calibrate(state.ema_params)
+        summary = evaluate(state.ema_params, thresholds, step)
+        last.update(step=step, thresholds=thresholds, entropies=entropies, summary=summary)
+        print(f"\n[eval @ {step}] " + ", ".join(f"{k}={v:.3g}" for k, v in summary.items()))
+        return summary
+
+    result = fit(policy, cfg.train, train_ds, out, eval_fn=eval_fn if (cfg.eval.every or cfg.final_eval) else None,
+                 eval_every=cfg.eval.every or None,
+                 meta_extra={"task": cfg.task, "data": os.path.abspath(cfg.data_path()), "val_ratio": cfg.val_ratio},
+                 progress=cfg.progress, num_devices=cfg.num_devices)
+    params, step = result.state.ema_params, int(result.state.step)
+    if last.get("step") == step:
+        thresholds, entropies, final = last["thresholds"], last["entropies"], last["summary"]
+    else:
+        thresholds, entropies = calibrate(params)
+        final = evaluate(params, thresholds, step) if cfg.final_eval else None
+    calibration.write_calibration(
+        calibration.calibration_record(entropies, thresholds, policy.chunk.num_freqs, cfg.inference,
+                                       source="demos", seed=cfg.train.seed, checkpoint_step=step, task=cfg.task),
+        os.path.join(out, calibration.CALIBRATION_FILE))
+    summary = {"task": cfg.task, "steps": step, "param_count": result.meta["param_count"],
+               "thresholds": list(thresholds), "eval": final,
+               "final_loss": float(np.mean(result.losses[-50:])) if result.losses else None,
+               "wall_time_s": time.perf_counter() - t0, "out": os.path.abspath(out)}
+    write_json(os.path.join(out, "summary.json"), summary)
+    if final is None:
+        print(f"\ntrained {summary['steps']} steps; outputs in {out}")
+    else:
+        print(f"\nsuccess rate {final['success_rate']:.2f} over {cfg.eval.episodes} episodes; mean steps "
+              f"(successful) {final['mean_steps_success']:.1f}; outputs in {out}")
+    return summary
+
+
+def main(cfg: RunConfig) -> dict:
+    """``dry_run`` or ``train``, as ``cfg.dry_run`` says."""
+    return dry_run(cfg) if cfg.dry_run else train(cfg)
+
+
+def ensure_trained(cfg: RunConfig) -> Run:
+    """Train (or resume) a run unless it finished already; → the loaded run. A finished run is reused whatever
+    inference settings ``cfg`` has; a run of another policy config in the same directory is refused."""
+    out = cfg.out_dir()
+    summary = os.path.join(out, "summary.json")
+    done = os.path.exists(summary) and read_json(summary).get("steps") == cfg.train.num_steps
+    if not done:
+        print(f"[runs] training {out}", flush=True)
+        train(cfg)
+    run = load_run(out)
+    if run.policy.cfg != cfg.policy:
+        raise ValueError(f"{out} holds a run of a different policy config; delete it or pass another --runs")
+    return run
