@@ -18,7 +18,8 @@ SECTIONS = (("sampling", "One-call N-sample latency (the paper's sample-times ta
             ("optimisation", "Sampler optimisations, before / after (interleaved, one run)"),
             ("convolutions", "Short-sequence U-Net convolutions, before / after (interleaved, one run)"),
             ("train_step", "Train-step throughput"),
-            ("rollout", "Closed-loop rollout throughput (MJX, policy in the loop)"))
+            ("rollout", "Closed-loop rollout throughput (MJX, policy in the loop)"),
+            ("tradeoff", "Latency–success trade-off"))
 
 
 def render(device: str, notes: str = "", results_dir: str = RESULTS_DIR) -> str:
@@ -40,7 +41,13 @@ def render(device: str, notes: str = "", results_dir: str = RESULTS_DIR) -> str:
                     f"Default `PolicyConfig()` policy: {res['default_policy_params']:,} parameters.", ""]
             out += [f"- {m['size']}/{m['obs']}: {m['params']:,} parameters, "
                     f"{m['flops_per_sample_step'] / 1e6:.2f} MFLOP per sample-step" for m in res["models"]] + [""]
+        if name == "tradeoff":
+            cheapest = res.get("cheapest_within_3_points")
+            out += [res["note"], ""] + ([f"**{cheapest['summary'][0].upper()}{cheapest['summary'][1:]}.**", ""]
+                                        if cheapest else [])
         out += [res["table_md"], ""]
+        if name == "tradeoff" and res.get("png"):
+            out += [f"![Decision latency vs closed-loop success]({res['png']})", ""]
     return "\n".join(out)
 
 

@@ -19,7 +19,7 @@ from typing import Literal
 from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.evaluation.plots import text_histogram
 from hipolicy_jax.runs.calibrate import calibrate_run
-from hipolicy_jax.runs.cli import parse_with_run_inference
+from hipolicy_jax.runs.cli import run_main
 from hipolicy_jax.runs.store import load_run
 
 
@@ -49,7 +49,4 @@ def main(args: CalibrateArgs) -> dict:
 
 
 if __name__ == "__main__":
-    try:
-        main(parse_with_run_inference(CalibrateArgs, description=__doc__))
-    except (ValueError, FileNotFoundError) as e:
-        raise SystemExit(f"error: {e}")
+    run_main(CalibrateArgs, main, __doc__)

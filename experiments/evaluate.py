@@ -6,7 +6,8 @@ default to the run's ``inference.json`` (so the numbers reproduce training's eva
 (``--inference.num-samples 100 --inference.sampler ddpm``); the thresholds come from ``calibration.json``
 (``python -m experiments.calibrate``) unless ``--inference.thresholds`` gives them (M+1 values, or the M-1 inner
 ones). The same episodes (same initial states) run twice in one compiled batched rollout: with entropy-guided
-execution and without it (always stride 1). Writes into ``RUN_DIR/eval/`` (or ``--out``):
+execution and without it (always stride 1). With the defaults the entropy-guided numbers reproduce the final
+evaluation ``experiments.train`` reported (same settings, same initial states). Writes into ``RUN_DIR/eval/`` (or ``--out``):
 
 - ``eval.json``: success rate, mean execution steps (all / successful episodes), stride fractions, per episode
   success and steps, for both evaluations, and the settings used;
@@ -23,7 +24,7 @@ import os
 from typing import Literal
 
 from hipolicy_jax.config import InferenceConfig
-from hipolicy_jax.runs.cli import parse_with_run_inference
+from hipolicy_jax.runs.cli import run_main
 from hipolicy_jax.runs.evaluate import evaluate_run
 from hipolicy_jax.runs.store import load_run
 
@@ -32,9 +33,10 @@ from hipolicy_jax.runs.store import load_run
 class EvaluateArgs:
     checkpoint: str  # run dir (holding checkpoints/ and calibration.json) or its checkpoints/ dir
     step: int | None = None  # checkpoint step (default: the latest)
-    episodes: int = 20
+    episodes: int = 20  # 20 = experiments.train's default --eval.episodes
     inference: InferenceConfig = InferenceConfig()  # default: the run's inference.json
-    seed: int = 0  # evaluation episodes come from eval_key(seed)
+    seed: int | None = None  # evaluation episodes come from eval_key(seed); default the run's training seed, whose
+    # initial states training evaluated on: the defaults reproduce the final evaluation of experiments.train
     out: str = ""  # default RUN_DIR/eval
     trace_episodes: int = 4  # episodes drawn in entropy_trace.png
     video: Literal["auto", "mp4", "gif", "none"] = "auto"  # auto: mp4 when ffmpeg is installed, else gif
@@ -51,7 +53,8 @@ def _line(name: str, s: dict) -> str:
 
 def main(args: EvaluateArgs) -> dict:
     run = load_run(args.checkpoint, args.step)
-    report = evaluate_run(run, args.inference, episodes=args.episodes, seed=args.seed, out=args.out,
+    seed = run.seed if args.seed is None else args.seed
+    report = evaluate_run(run, args.inference, episodes=args.episodes, seed=seed, out=args.out,
                           trace_episodes=args.trace_episodes, video_format=args.video,
                           video_backend=args.video_backend, video_height=args.video_height,
                           video_width=args.video_width)
@@ -65,7 +68,4 @@ def main(args: EvaluateArgs) -> dict:
 
 
 if __name__ == "__main__":
-    try:
-        main(parse_with_run_inference(EvaluateArgs, description=__doc__))
-    except (ValueError, FileNotFoundError) as e:
-        raise SystemExit(f"error: {e}")
+    run_main(EvaluateArgs, main, __doc__)

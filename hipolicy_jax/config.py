@@ -220,7 +220,7 @@ class FlowConfig:
         _require(self.clip_range > 0, "flow.clip_range", f"must be > 0, got {self.clip_range}")
 
 
-ExecutionKind = Literal["chunk"]
+ExecutionKind = Literal["chunk", "aac", "te"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -241,7 +241,10 @@ class InferenceConfig:
       ``percentiles`` (M−1 values in (0, 100); None: 10 / 70 for M = 3 as the paper, evenly spaced otherwise) of
       the action entropies of ``calib_windows`` held-out demo windows.
     - ``entropy_guided``: False always executes the highest frequency (stride 1).
-    - ``execution``: how a decision's chunk is executed; ``chunk`` runs the L_c actions of the selected frequency.
+    - ``execution``: how a decision's samples are executed (``evaluation.execution``): ``chunk`` runs the L_c
+      actions of the selected frequency; ``aac`` (adaptive action chunking) the first k of them, k from the
+      entropy curve of the N samples; ``te`` (ACT's temporal ensembling) decides at every control step and executes
+      the exp(−te_decay·i)-weighted mean of the stored chunks' predictions for that step.
     """
 
     num_samples: int = 16
@@ -252,6 +255,7 @@ class InferenceConfig:
     calib_windows: int = 128
     entropy_guided: bool = True
     execution: ExecutionKind = "chunk"
+    te_decay: float = 0.01  # temporal ensembling's m (ACT): weight exp(-m·i), i = 0 for the oldest prediction
     entropy_eps: float = 1e-6
 
     def __post_init__(self):
@@ -271,14 +275,16 @@ class InferenceConfig:
                      f"must be ascending values in (0, 100), got {p}")
             object.__setattr__(self, "percentiles", p)
         _require(self.calib_windows >= 1, "inference.calib_windows", f"must be >= 1, got {self.calib_windows}")
-        _require(self.execution in ("chunk",), "inference.execution", f"must be 'chunk', got {self.execution!r}")
+        _require(self.execution in ("chunk", "aac", "te"), "inference.execution",
+                 f"must be 'chunk', 'aac' or 'te', got {self.execution!r}")
+        _require(self.te_decay >= 0, "inference.te_decay", f"must be >= 0, got {self.te_decay}")
         _require(self.entropy_eps > 0, "inference.entropy_eps", f"must be > 0, got {self.entropy_eps}")
 
     def sampler_settings(self) -> "InferenceConfig":
-        """Only what the compiled sampler depends on (N, sampler, steps, entropy ε), the rest at defaults: the
-        static key of compiled samplers and rollouts, so thresholds or calibration settings never recompile."""
+        """Only what compiled samplers and rollouts depend on (N, sampler, steps, execution, entropy ε), the rest at
+        defaults: their static key, so thresholds or calibration settings never recompile."""
         return InferenceConfig(num_samples=self.num_samples, sampler=self.sampler, num_steps=self.num_steps,
-                               execution=self.execution, entropy_eps=self.entropy_eps)
+                               execution=self.execution, te_decay=self.te_decay, entropy_eps=self.entropy_eps)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -8,7 +8,7 @@ import math
 
 import pytest
 
-from benchmarks import convolutions, optimisation, rollout, sampling, train_step
+from benchmarks import convolutions, optimisation, rollout, sampling, tradeoff, train_step
 
 
 def _load(out_dir, name):
@@ -80,7 +80,111 @@ def test_convolutions_benchmark(tmp_path):
         assert r["max_abs_diff"] < 1e-4
 
 
-@pytest.mark.parametrize("module", [sampling, train_step, rollout, optimisation, convolutions])
+def _tiny_run(tmp_path, objective: str) -> str:
+    """A 2-step tiny press_button run of ``objective`` on a synthetic demo buffer (random states and actions of the
+    task's sizes, shared by the runs), so nothing is collected; → the run dir."""
+    import numpy as np
+
+    from hipolicy_jax import envs
+    from hipolicy_jax.config import EvalConfig, InferenceConfig, ModelConfig, PolicyConfig, TrainConfig
+    from hipolicy_jax.data.replay_buffer import ReplayBuffer
+    from hipolicy_jax.runs.train import RunConfig, train
+
+    data = tmp_path / "demos.zarr"
+    if not data.exists():
+        env, rng = envs.make("press_button"), np.random.default_rng(0)
+        ReplayBuffer(data={"state": rng.random((180, env.state_dim), np.float32),
+                           "action": rng.random((180, env.action_dim), np.float32)},
+                     episode_ends=np.arange(30, 181, 30)).save(data)
+    out = tmp_path / objective
+    train(RunConfig(task="press_button", out=str(out), data=str(data), episodes=6, val_ratio=0.34,
+                    policy=PolicyConfig(model=ModelConfig(size="tiny", fusion_heads=2), objective=objective),
+                    train=TrainConfig(batch_size=16, num_steps=2, warmup_steps=1, log_every=1, ckpt_every=2),
+                    eval=EvalConfig(episodes=1, every=0),
+                    inference=InferenceConfig(num_samples=2, num_steps=1, calib_windows=4), progress=False,
+                    final_eval=False))
+    return str(out)
+
+
+def _tradeoff_flags(tmp_path, head: str, run: str) -> list[str]:
+    """Tiny tradeoff flags: press_button, one 2-step setting per head against a reference at N = 3, 8 windows,
+    2 episodes of 8 control steps."""
+    return ["--tasks", "press_button", "--heads", head, "--diffusion-settings", "ddim:2", "--diffusion-reference",
+            "ddim:2", "--flow-settings", "euler:1", "--flow-reference", "euler:2", "--reference-n", "3", "--windows",
+            "8", "--window-batch", "8", "--episodes", "2", "--max-steps", "8", "--repeats", "2", "--row-budget-s", "1",
+            "--out-dir", str(tmp_path / "out"), "--runs", f"press_button:{head}:{run}"]
+
+
+def _tradeoff_row_ok(r: dict, closed_loop: bool):
+    _finite(r, ["num_steps", "num_samples", "latency_ms", "latency_p90_ms", "agreement", "spearman",
+                "batched_decision_s"])
+    assert 0.0 <= r["agreement"] <= 1.0 and -1.0 <= r["spearman"] <= 1.0
+    assert r["thresholds"][0] == -math.inf and r["thresholds"][-1] == math.inf
+    if closed_loop:
+        assert r["closed_loop"] == "run"
+        _finite(r, ["success_rate", "mean_steps_all"])
+        assert r["mean_steps"] is None or math.isfinite(r["mean_steps"])  # null when no episode succeeded
+    else:
+        assert r["success_rate"] is None and r["mean_steps"] is None
+        assert r["closed_loop"].startswith("not run: batched decision ~") and r["closed_loop"].endswith("> 1e-09 s")
+
+
+def test_tradeoff_benchmark(tmp_path):
+    """A tiny diffusion run, N = 2 and N = 3 (the reference setting): latency and open loop measured, the closed
+    loops skipped by a tiny --closed-loop-limit-s (null success); a second call resumes every row as is."""
+    flags = ["--ns", "2", "3", "--closed-loop-limit-s", "1e-9",
+             *_tradeoff_flags(tmp_path, "diffusion", _tiny_run(tmp_path, "diffusion"))]
+    tradeoff.main(flags)
+    res = _load(tmp_path / "out", "tradeoff")
+    rows = {r["num_samples"]: r for r in res["rows"]}
+    assert sorted(rows) == [2, 3] and rows[2]["setting"] == "DDIM 2, N=2"
+    for r in rows.values():
+        assert set(tradeoff.REQUIRED_KEYS) <= set(r) and r["reference"] == "DDIM 2, N=3"
+        _tradeoff_row_ok(r, closed_loop=False)
+    assert rows[3]["agreement"] == 1.0 and rows[3]["spearman"] == pytest.approx(1.0)  # the reference itself
+    assert (tmp_path / "out" / res["png"]).exists() and res["cheapest_within_3_points"] is None
+
+    tradeoff.main(flags)
+    assert _load(tmp_path / "out", "tradeoff")["rows"] == res["rows"]  # resumed: nothing re-measured
+
+
+@pytest.mark.slow
+def test_tradeoff_benchmark_closed_loop(tmp_path):
+    """Tiny diffusion and flow runs: one setting each with its closed loop run (one rollout compile each)."""
+    for head in ("diffusion", "flow"):
+        tradeoff.main(["--ns", "2", *_tradeoff_flags(tmp_path, head, _tiny_run(tmp_path, head))])
+    rows = {r["head"]: r for r in _load(tmp_path / "out", "tradeoff")["rows"]}
+    assert [(rows[h]["setting"], rows[h]["reference"]) for h in ("diffusion", "flow")] == [
+        ("DDIM 2, N=2", "DDIM 2, N=3"), ("Euler 1, N=2", "Euler 2, N=3")]
+    for r in rows.values():
+        _tradeoff_row_ok(r, closed_loop=True)
+
+
+def test_tradeoff_cheapest_and_spearman():
+    import numpy as np
+
+    def row(task, head, sampler, steps, n, latency, success):
+        return {"task": task, "head": head, "sampler": sampler, "num_steps": steps, "num_samples": n,
+                "setting": f"{sampler} {steps}, N={n}", "latency_ms": latency, "success_rate": success}
+
+    tasks = ["press_button", "latch_door"]
+    rows = [row(t, "diffusion", "ddim", 10, 16, 100.0, 0.8) for t in tasks]
+    rows += [row(t, "diffusion", "ddpm", 100, 100, 5000.0, 0.9) for t in tasks]
+    rows += [row("press_button", "flow", "euler", 1, 4, 5.0, 0.9), row("latch_door", "flow", "euler", 1, 4, 5.0, 0.7)]
+    rows += [row(t, "flow", "euler", 2, 4, 10.0, 0.78) for t in tasks]  # within 3 points on both
+    rows += [row(t, "flow", "euler", 1, 16, 1.0, None) for t in tasks]  # closed loop not run
+    best = tradeoff.cheapest_within(rows, tasks)
+    assert (best["head"], best["sampler"], best["num_steps"], best["num_samples"]) == ("flow", "euler", 2, 4)
+    assert best["latency_ratio_to_base"] == pytest.approx(0.1) and best["latency_ratio_to_top"] == pytest.approx(0.002)
+    assert tradeoff.cheapest_within(rows[2:], tasks) is None  # no DDIM 10, N=16
+
+    a = np.array([3.0, 1.0, 2.0, 2.0, 5.0])
+    np.testing.assert_allclose(tradeoff.average_ranks(a), [4.0, 1.0, 2.5, 2.5, 5.0])
+    assert tradeoff.spearman(a, a) == pytest.approx(1.0) and tradeoff.spearman(a, -a) == pytest.approx(-1.0)
+    assert math.isnan(tradeoff.spearman(a, np.ones(5)))
+
+
+@pytest.mark.parametrize("module", [sampling, train_step, rollout, optimisation, convolutions, tradeoff])
 def test_benchmark_flags_parse(module):
     assert module.parse_args([]).out_dir is None
 

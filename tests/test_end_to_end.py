@@ -37,6 +37,14 @@ def test_train_calibrate_evaluate_tiny(tmp_path):
     # two evaluations (steps 6 and 12, the final one reused) with new parameters each: one compiled rollout
     assert sum("rollout_episode" in name for name in compiled) == 1, compiled
 
+    # experiments.evaluate's defaults (the run's inference.json, its training seed) reproduce the final evaluation
+    from experiments import evaluate
+
+    report = evaluate.main(evaluate.EvaluateArgs(checkpoint=str(tmp_path / "run"), episodes=3, video="none",
+                                                 inference=read_inference(str(tmp_path / "run"))))
+    for k in ("success_rate", "mean_steps", "stride1_frac"):
+        assert report["with_eg"].get(k) == summary["eval"].get(k), k
+
     # re-running the finished command resumes at the end, whatever the inference settings: no training steps
     again = main(dataclasses.replace(args, inference=InferenceConfig(num_samples=3, num_steps=1, calib_windows=8)))
     assert again["steps"] == 12

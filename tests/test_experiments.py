@@ -8,7 +8,7 @@ import math
 import os
 import shlex
 
-import imageio.v2 as imageio
+import imageio.v3 as iio
 import jax
 import numpy as np
 import pytest
@@ -61,7 +61,7 @@ def test_evaluate_writes_json_trace_and_video(tiny):
     report = evaluate.main(args)
     out = os.path.join(run, "eval")
     video = report["files"]["video"]
-    assert video.endswith(".mp4")  # imageio-ffmpeg is a dependency
+    assert video.endswith(".mp4")  # PyAV (an FFmpeg binding) is a dependency
     for path in (os.path.join(out, "eval.json"), os.path.join(out, "entropy_trace.png"), video):
         assert os.path.getsize(path) > 0
     saved = _load(os.path.join(out, "eval.json"))
@@ -74,10 +74,8 @@ def test_evaluate_writes_json_trace_and_video(tiny):
     assert saved["without_eg"]["stride1_frac"] == 1.0  # w/o entropy guidance: always the highest frequency
     assert report["steps_ratio"] > 0 and 0 <= saved["video_episode"] < 3
     # the video is the recorded episode of the batched rollout: the reset frame plus one frame per step
-    reader = imageio.get_reader(video)
-    assert reader.count_frames() == saved["with_eg"]["steps"][saved["video_episode"]] + 1
-    assert reader.get_data(0).shape == (48, 64, 3)
-    reader.close()
+    frames = iio.imread(video, plugin="pyav")  # in-process decoding (no ffmpeg subprocess fork)
+    assert frames.shape == (saved["with_eg"]["steps"][saved["video_episode"]] + 1, 48, 64, 3)
 
 
 def test_evaluate_checkpoints_dir_and_threshold_override(tiny, tmp_path):
@@ -113,6 +111,27 @@ def test_one_evaluator_two_checkpoints_one_compile(tiny):
     other = make_evaluator(last, SMOKE.inference)
     other.evaluate(last.policy.params, last.policy.normalizer, 2, jax.random.key(0), th)
     assert other.traces == 1 and ev.traces == 1
+
+
+def test_execution_strategies_in_closed_loop(tiny, tmp_path):
+    """AAC from experiments.evaluate (decisions execute 1..L_c actions) and temporal ensembling through an
+    Evaluator (one decision and one action per control step)."""
+    _, run = tiny
+    report = evaluate.main(parse_with_run_inference(evaluate.EvaluateArgs, [
+        "--checkpoint", run, "--episodes", "2", "--inference.execution", "aac", "--video", "none",
+        "--out", str(tmp_path / "aac")]))
+    assert report["inference"]["execution"] == "aac"
+    for key in ("with_eg", "without_eg"):
+        s = report[key]
+        assert 1.0 <= s["mean_actions_per_decision"] <= 8.0
+        assert s["mean_decisions"] * s["mean_actions_per_decision"] == pytest.approx(s["mean_steps"], rel=1e-6)
+    last = load_run(run)
+    ev = make_evaluator(last, dataclasses.replace(SMOKE.inference, execution="te"), max_steps=12)
+    res = ev.evaluate(last.policy.params, last.policy.normalizer, 2, jax.random.key(0))
+    valid = np.asarray(res.valid)
+    assert valid.shape == (2, 12) and (valid.sum(axis=1) == np.asarray(res.steps)).all()
+    assert (np.asarray(res.executed)[valid] == 1).all()
+    np.testing.assert_array_equal(np.asarray(res.start)[0, :int(res.steps[0])], np.arange(int(res.steps[0])))
 
 
 def test_calibrate_demos_reproduces_training_calibration(tiny, tmp_path, capsys):

@@ -36,7 +36,14 @@ def test_expert_policy_evaluation_and_masking():
     # an episode is valid at replan r iff it had not finished before the r-th chunk started
     r = np.arange(num_replans)
     np.testing.assert_array_equal(np.asarray(res.valid), r[None, :] * CHUNK < steps[:, None])
-    assert (np.asarray(res.stride) == 1).all() and (np.asarray(res.entropy) == 0).all()
+    valid = np.asarray(res.valid)
+    assert (np.asarray(res.stride)[valid] == 1).all() and (np.asarray(res.entropy)[valid] == 0).all()
+    # each decision started where the previous one ended and executed its whole chunk (the last one up to the end)
+    start, executed = np.asarray(res.start), np.asarray(res.executed)
+    for e in range(4):
+        n = valid[e].sum()
+        np.testing.assert_array_equal(start[e, :n], np.arange(n) * CHUNK)
+        assert executed[e, :n].sum() == steps[e] and (executed[e, :n - 1] == CHUNK).all()
 
 
 def test_stateless_policy_step_limit_and_history():
@@ -56,6 +63,7 @@ def test_stateless_policy_step_limit_and_history():
     assert float(res.success_rate) == 0.0 and np.isnan(float(res.mean_steps_success))
     assert res.valid.shape == (3, 3) and bool(res.valid.all())
     assert (np.asarray(res.stride) == 2).all() and (np.asarray(res.entropy) == HIST).all()
+    np.testing.assert_array_equal(np.asarray(res.executed), [[8, 8, 4]] * 3)
 
 
 def test_policy_chunk_shape_is_checked():

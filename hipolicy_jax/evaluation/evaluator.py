@@ -21,7 +21,8 @@ from hipolicy_jax.config import InferenceConfig, PolicyConfig
 from hipolicy_jax.envs.base import MjxEnv
 from hipolicy_jax.evaluation import calibration
 from hipolicy_jax.evaluation.policy import PolicyArgs, make_policy_fn
-from hipolicy_jax.evaluation.rollout import EvalResult, Recording, Rollout, stateless
+from hipolicy_jax.evaluation.execution import make_execution
+from hipolicy_jax.evaluation.rollout import EvalResult, Recording, Rollout
 from hipolicy_jax.models.policy_net import PolicyNet
 from hipolicy_jax.sampling import make_sampler
 
@@ -42,9 +43,11 @@ class Evaluator:
             raise ValueError(f"action_dim: the policy predicts {action_dim}-dim actions, the {self.task} env takes "
                              f"{self.env.action_dim}")
         self.net = PolicyNet(cfg, action_dim)
-        policy_fn, init_fn = stateless(make_policy_fn(self.net, cfg, action_dim, inference), with_args=True)
+        execution = make_execution(inference)
+        policy_fn, init_fn = make_policy_fn(self.net, cfg, action_dim, inference)
         self._rollout = Rollout(self.env, policy_fn, init_fn, history_len=cfg.chunk.obs_span,
-                                chunk_len=cfg.chunk.chunk_len, max_steps=max_steps)
+                                chunk_len=execution.exec_len(cfg.chunk), max_steps=max_steps,
+                                min_actions=execution.min_actions(cfg.chunk))
         self._sampler = None
 
     @property
@@ -87,12 +90,14 @@ class Evaluator:
 
 
 def eval_summary(result: EvalResult) -> dict:
-    """JSON-able scalars of an ``EvalResult``: success rate, mean steps (all / successful), stride fractions, mean
-    entropy."""
+    """JSON-able scalars of an ``EvalResult``: success rate, mean steps (all / successful), decisions per episode and
+    actions executed per decision, stride fractions, mean entropy."""
     valid = np.asarray(result.valid)
     strides = np.asarray(result.stride)[valid]
     out = {"success_rate": float(result.success_rate), "mean_steps_success": float(result.mean_steps_success),
-           "mean_steps": float(np.mean(np.asarray(result.steps)))}
+           "mean_steps": float(np.mean(np.asarray(result.steps))),
+           "mean_decisions": float(valid.sum(axis=1).mean()),
+           "mean_actions_per_decision": float(np.asarray(result.executed)[valid].mean()) if valid.any() else np.nan}
     for s in np.unique(strides):
         out[f"stride{int(s)}_frac"] = float(np.mean(strides == s))
     ent = np.asarray(result.entropy)[valid]

@@ -22,14 +22,15 @@ def _pyplot():
     return plt
 
 
-def plot_entropy_traces(result, thresholds, strides: tuple[int, ...], chunk_len: int, path: str, *,
-                        episodes: int = 4, title: str = "", percentiles=None) -> str:
-    """PNG of per-replan entropy over control steps for the first ``episodes`` episodes of an ``EvalResult``:
-    the executed stride as background bands, the finite thresholds as dashed lines."""
+def plot_entropy_traces(result, thresholds, strides: tuple[int, ...], path: str, *, episodes: int = 4,
+                        title: str = "", percentiles=None) -> str:
+    """PNG of per-decision entropy over control steps for the first ``episodes`` episodes of an ``EvalResult``:
+    each decision from the control step it was taken at to the next, its executed stride as a background band, the
+    finite thresholds as dashed lines."""
     from matplotlib.patches import Patch
 
     plt = _pyplot()
-    ent, stride, valid = (np.asarray(x) for x in (result.entropy, result.stride, result.valid))
+    ent, stride, valid, start = (np.asarray(x) for x in (result.entropy, result.stride, result.valid, result.start))
     success, steps = np.asarray(result.success), np.asarray(result.steps)
     n = max(1, min(episodes, ent.shape[0]))
     fig, axes = plt.subplots(n, 1, figsize=(8, 1.9 * n + 0.8), sharex=True, squeeze=False)
@@ -37,14 +38,16 @@ def plot_entropy_traces(result, thresholds, strides: tuple[int, ...], chunk_len:
     finite = ent[valid & np.isfinite(ent)]
     for e, ax in enumerate(axes[:, 0]):
         rs = np.flatnonzero(valid[e])
-        for r in rs:
+        begin = start[e, rs]
+        end = np.append(begin[1:], steps[e])
+        for r, a, b in zip(rs, begin, end):
             color = np.array(stride_color(stride[e, r])) / 255
-            ax.axvspan(r * chunk_len, min((r + 1) * chunk_len, steps[e]), color=color, alpha=0.25, lw=0, zorder=0)
+            ax.axvspan(a, max(b, a + 0.5), color=color, alpha=0.25, lw=0, zorder=0)
         if rs.size and np.isfinite(ent[e, rs]).any():
-            x = np.append(rs * chunk_len, min((rs[-1] + 1) * chunk_len, steps[e]))
+            x = np.append(begin, end[-1])
             y = np.append(ent[e, rs], ent[e, rs[-1]])
             ax.step(x, y, where="post", color="k", lw=1.2)
-            ax.plot(rs * chunk_len, ent[e, rs], "k.", ms=4)
+            ax.plot(begin, ent[e, rs], "k.", ms=4)
         for k, t in inner:
             label = f"th{k}" + (f" (p{percentiles[k - 1]:g})" if percentiles and 0 < k <= len(percentiles) else "")
             ax.axhline(t, color="gray", ls="--", lw=0.9)

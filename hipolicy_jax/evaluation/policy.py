@@ -2,8 +2,9 @@
 
 ``make_policy_fn`` wraps the one sampler (``sampling.sample``) for ONE episode: the environment's base-rate
 observation history ``{key: (obs_span, ...)}`` → per-stride windows (``data.windowing.gather_history``) → N samples
-→ ``PolicyOutput(actions (L_c, A), stride, entropy)``. Rollouts ``vmap`` it over episodes; the parameters travel
-as a traced ``PolicyArgs`` so one compiled rollout serves every evaluation of a run (``Evaluator``).
+→ the execution strategy (``execution``) → ``PolicyOutput(actions, stride, entropy, num_actions)``. Rollouts
+``vmap`` it over episodes; the parameters travel as a traced ``PolicyArgs`` so one compiled rollout serves every
+evaluation of a run (``Evaluator``).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import jax
 
 from hipolicy_jax.config import InferenceConfig, PolicyConfig
 from hipolicy_jax.data.windowing import gather_history
-from hipolicy_jax.evaluation.rollout import PolicyOutput
+from hipolicy_jax.evaluation.execution import Decision, make_execution
 from hipolicy_jax.sampling import sample
 
 
@@ -27,17 +28,21 @@ class PolicyArgs(NamedTuple):
 
 
 def make_policy_fn(net, cfg: PolicyConfig, action_dim: int,
-                   inference: InferenceConfig = InferenceConfig()) -> Callable:
-    """``policy_fn(obs_history, key, args: PolicyArgs) -> PolicyOutput`` for one episode (vmap it over episodes).
+                   inference: InferenceConfig = InferenceConfig()) -> tuple[Callable, Callable]:
+    """``(policy_fn, init_fn)`` for ONE episode (vmap over episodes), as ``rollout.Rollout`` takes them:
+    ``policy_fn(obs_history, key, execution_state, args: PolicyArgs) -> (PolicyOutput, execution_state)`` and
+    ``init_fn(first_obs, key) -> execution_state``.
 
     obs_history: ``{key: (chunk.obs_span, ...)}`` raw base-rate observations, oldest first, padded at episode start
-    by repeating the first frame. Keys the policy does not read are ignored. Only ``inference.sampler_settings()``
-    is used (N, sampler, steps); thresholds travel in ``args``.
+    by repeating the first frame. Keys the policy does not read are ignored. The N samples become actions through
+    ``inference.execution`` (``execution.make_execution``); only ``inference.sampler_settings()`` is used, the
+    thresholds travel in ``args``.
     """
     keys = cfg.encoder.obs_keys
     inference = inference.sampler_settings()
+    execution = make_execution(inference)
 
-    def policy_fn(obs_history, key, args: PolicyArgs):
+    def policy_fn(obs_history, key, state, args: PolicyArgs):
         missing = [k for k in keys if k not in obs_history]
         if missing:
             raise ValueError(f"obs_history lacks {missing}; the policy reads {keys}")
@@ -45,6 +50,9 @@ def make_policy_fn(net, cfg: PolicyConfig, action_dim: int,
         obs = jax.tree.map(lambda x: x[None], windows)  # (1, M, L_h, ...)
         res = sample(args.params, args.normalizer, obs, key, args.thresholds, net=net, cfg=cfg,
                      action_dim=action_dim, inference=inference)
-        return PolicyOutput(actions=res.actions[0], stride=res.stride[0], entropy=res.entropy[0])
+        return execution.decide(Decision(*(x[0] for x in res)), state, cfg.chunk)
 
-    return policy_fn
+    def init_fn(obs, key):
+        return execution.init(cfg.chunk, action_dim)
+
+    return policy_fn, init_fn

@@ -2,13 +2,16 @@
 
 Policy interface (written for ONE episode; ``evaluate`` vmaps it over episodes)::
 
-    policy_fn(obs_history, key) -> PolicyOutput(actions (L_c, A), stride () int32, entropy () float32)
+    policy_fn(obs_history, key) -> PolicyOutput(actions (L, A), stride () int32, entropy () float32,
+                                                num_actions () int32 or None)
 
 ``obs_history`` maps every observation key to ``(history_len, ...)``: the last ``history_len`` control-rate
 observations, oldest first, padded at the episode start by repeating the first observation (as training windows
-are padded). After each replan the executor executes all ``L_c`` actions of the chunk, one per control step, and
-appends every new observation to the history, so a chunk predicted at stride s covers s·L_c steps of demonstration
-time in L_c control steps (the execution speed-up); ``stride`` and ``entropy`` are only recorded.
+are padded). After each decision the executor executes the first ``num_actions`` (default all L) actions, one per
+control step, and appends every new observation to the history, so a chunk predicted at stride s covers s·L steps
+of demonstration time in L control steps (the execution speed-up); ``stride`` and ``entropy`` are only recorded.
+How a policy's samples become these actions (the whole chunk, adaptive chunk sizes, temporal ensembling) is the
+execution strategy (``evaluation.execution``).
 
 Policies with memory (the scripted expert) use ``evaluate_stateful`` with
 ``policy_fn(obs_history, key, policy_state, policy_args) -> (PolicyOutput, policy_state)`` and
@@ -20,8 +23,9 @@ thresholds) is a traced pytree passed to ``policy_fn(obs_history, key, policy_ar
 ``evaluate_stateful`` / ``rollout_episodes`` build a fresh ``Rollout`` per call, for one-off evaluations; there is
 no global cache.
 
-All episodes run in one jitted rollout: ``lax.scan`` over replans, an inner ``lax.scan`` over the chunk's steps.
-An episode is frozen (env state, history and policy state masked) once it is done or reaches the step limit.
+All episodes run in one jitted rollout: a ``lax.while_loop`` over decisions (until every episode is over), an
+inner ``lax.scan`` over the decision's actions. An episode is frozen (env state, history and policy state masked)
+once it is done or reaches the step limit.
 
 The same episode loop (``make_episode_fn``) also records what videos need: the joint positions of every control
 step (and optionally observations), as a ``Recording``. Batched rollouts always record qpos (E·T·nq floats, cheap),
@@ -43,20 +47,35 @@ from hipolicy_jax.envs.base import ExpertPlan, MjxEnv
 
 
 class PolicyOutput(NamedTuple):
-    """One replan: actions (L_c, A) to execute one per control step, the stride they were predicted at () int32
-    and the policy's entropy estimate () float32 (NaN when the policy has none)."""
+    """One decision: actions (L, A) to execute one per control step, the stride they were predicted at () int32,
+    the policy's entropy estimate () float32 (NaN when the policy has none) and how many of the actions to execute
+    before the next decision, ``num_actions`` () int32 in [1, L] (None: all L)."""
 
     actions: jax.Array
     stride: jax.Array
     entropy: jax.Array
+    num_actions: Any = None
+
+
+class Trace(NamedTuple):
+    """Per-decision record of one episode, each (R,): entropy, stride, valid (the decision happened), start (the
+    control step it was taken at) and executed (how many of its actions ran). Entries where valid is False are
+    padding."""
+
+    entropy: jax.Array
+    stride: jax.Array
+    valid: jax.Array
+    start: jax.Array
+    executed: jax.Array
 
 
 class EvalResult(NamedTuple):
     """Evaluation of E episodes with R replans each.
 
     success_rate () float32, mean_steps_success () float32 (mean control steps of successful episodes; NaN if
-    none), success (E,) bool, steps (E,) int32 control steps executed, entropy (E, R) float32, stride (E, R) int32,
-    valid (E, R) bool (the episode was still running at that replan; entries where False are meaningless).
+    none), success (E,) bool, steps (E,) int32 control steps executed, and per decision (E, R): entropy float32,
+    stride int32, valid bool (the episode was still running at that decision; entries where False are padding),
+    start int32 (the control step the decision was taken at), executed int32 (actions it executed).
     """
 
     success_rate: jax.Array
@@ -66,6 +85,8 @@ class EvalResult(NamedTuple):
     entropy: jax.Array
     stride: jax.Array
     valid: jax.Array
+    start: jax.Array
+    executed: jax.Array
 
 
 class Recording(NamedTuple):
@@ -105,17 +126,25 @@ def _resolve(task: str | MjxEnv) -> MjxEnv:
 
 def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *, history_len: int,
                     chunk_len: int, max_steps: int | None = None, record: bool = False,
-                    record_obs: tuple[str, ...] = ()) -> Callable[[jax.Array, Any], tuple]:
-    """The un-batched, un-jitted rollout of one episode: ``episode(key, policy_args) -> (final State, entropy (R,),
-    stride (R,), valid (R,))``, plus a ``Recording`` (qpos and the ``record_obs`` observations of every control
-    step) as a fifth element when ``record``. ``Rollout`` vmaps and jits it; ``video`` jits it alone."""
-    if history_len < 1 or chunk_len < 1:
-        raise ValueError(f"history_len and chunk_len must be >= 1, got {history_len}, {chunk_len}")
+                    record_obs: tuple[str, ...] = (),
+                    min_actions: int | None = None) -> Callable[[jax.Array, Any], tuple]:
+    """The un-batched, un-jitted rollout of one episode: ``episode(key, policy_args) -> (final State, Trace)``, plus a
+    ``Recording`` (qpos and the ``record_obs`` observations of every control step) as a third element when
+    ``record``. ``Rollout`` vmaps and jits it; ``video`` jits it alone.
+
+    Every decision returns ``chunk_len`` actions of which the first ``num_actions`` (all when None) are executed,
+    one per control step, before the next decision; ``min_actions`` (default ``chunk_len``) is the fewest a decision
+    may execute and sizes the per-decision trace: R = ceil(limit / min_actions) entries. The decisions run in a
+    ``lax.while_loop`` that stops once the episode is over (under ``vmap``: once every episode is)."""
+    min_actions = chunk_len if min_actions is None else int(min_actions)
+    if history_len < 1 or chunk_len < 1 or not 1 <= min_actions <= chunk_len:
+        raise ValueError(f"history_len, chunk_len must be >= 1 and min_actions in [1, chunk_len], got {history_len}, "
+                         f"{chunk_len}, {min_actions}")
     missing = [k for k in record_obs if k not in env.obs_keys]
     if missing:
         raise ValueError(f"record_obs: {missing} not among the env's observations {env.obs_keys}")
     limit = int(max_steps if max_steps is not None else env.max_steps)
-    num_replans = math.ceil(limit / chunk_len)
+    num_replans = math.ceil(limit / min_actions)
     record_obs = tuple(record_obs)
 
     def finished(state):
@@ -129,34 +158,53 @@ def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *
         state = env.reset(k_reset)
         history = init_history(state.obs, history_len)
         pstate = init_fn(state.obs, k_init)
+        trace = Trace(entropy=jnp.full((num_replans,), jnp.nan, jnp.float32),
+                      stride=jnp.zeros((num_replans,), jnp.int32), valid=jnp.zeros((num_replans,), bool),
+                      start=jnp.zeros((num_replans,), jnp.int32), executed=jnp.zeros((num_replans,), jnp.int32))
+        # per control step snapshots, index = the step count after it (0: the reset); entries are rewritten with the
+        # same frozen state once the episode is over
+        frames = jax.tree.map(lambda x: jnp.zeros((limit + 1, *x.shape), x.dtype), snapshot(state)) if record else ()
+        frames = jax.tree.map(lambda buf, x: buf.at[0].set(x), frames, snapshot(state)) if record else ()
 
-        def replan(carry, r):
-            state, history, pstate = carry
-            valid = ~finished(state)
-            out, new_pstate = policy_fn(history, jax.random.fold_in(k_policy, r), pstate, policy_args)
-            pstate = _select(valid, new_pstate, pstate)
+        def running(carry):
+            r, state = carry[0], carry[1]
+            return (r < num_replans) & ~finished(state)
 
-            def act(inner, action):
-                state, history = inner
+        def decide(carry):
+            r, state, history, pstate, trace, frames = carry
+            out, pstate = policy_fn(history, jax.random.fold_in(k_policy, r), pstate, policy_args)
+            n = chunk_len if out.num_actions is None else jnp.clip(out.num_actions, 1, chunk_len)
+            start = state.step
+
+            def act(inner, i_action):
+                i, action = i_action
+                state, history, frames = inner
                 new_state = env.step(state, action)
                 new_history = push_history(history, new_state.obs)
-                keep = finished(state)
+                keep = finished(state) | (i >= n)
                 state, history = _select(keep, state, new_state), _select(keep, history, new_history)
-                return (state, history), (snapshot(state) if record else None)
+                if record:
+                    frames = jax.tree.map(lambda buf, x: buf.at[state.step].set(x), frames, snapshot(state))
+                return (state, history, frames), None
 
-            (state, history), steps = jax.lax.scan(act, (state, history), out.actions)
-            trace = (jnp.asarray(out.entropy, jnp.float32), jnp.asarray(out.stride, jnp.int32), valid, steps)
-            return (state, history, pstate), trace
+            (state, history, frames), _ = jax.lax.scan(act, (state, history, frames),
+                                                       (jnp.arange(chunk_len), out.actions))
+            trace = Trace(entropy=trace.entropy.at[r].set(jnp.asarray(out.entropy, jnp.float32)),
+                          stride=trace.stride.at[r].set(jnp.asarray(out.stride, jnp.int32)),
+                          valid=trace.valid.at[r].set(True), start=trace.start.at[r].set(start),
+                          executed=trace.executed.at[r].set(state.step - start))
+            return r + 1, state, history, pstate, trace, frames
 
-        first = snapshot(state)
         body_pos = state.info["body_pos"]
-        (state, _, _), (entropy, stride, valid, steps) = jax.lax.scan(
-            replan, (state, history, pstate), jnp.arange(num_replans))
+        _, state, _, _, trace, frames = jax.lax.while_loop(
+            running, decide, (jnp.zeros((), jnp.int32), state, history, pstate, trace, frames))
         if not record:
-            return state, entropy, stride, valid
-        # (R, L_c, ...) per-step snapshots after each step, preceded by the reset's → (R·L_c + 1, ...)
-        qpos, obs = jax.tree.map(lambda f, x: jnp.concatenate([f[None], x.reshape(-1, *x.shape[2:])]), first, steps)
-        return state, entropy, stride, valid, Recording(qpos=qpos, body_pos=body_pos, obs=obs)
+            return state, trace
+        # entries past the last step repeat the final state
+        after = jnp.arange(limit + 1) > state.step
+        qpos, obs = jax.tree.map(lambda buf: jnp.where(after.reshape(-1, *([1] * (buf.ndim - 1))), buf[state.step],
+                                                       buf), frames)
+        return state, trace, Recording(qpos=qpos, body_pos=body_pos, obs=obs)
 
     return episode
 
@@ -192,12 +240,12 @@ class Rollout:
     """
 
     def __init__(self, env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *, history_len: int,
-                 chunk_len: int, max_steps: int | None = None):
+                 chunk_len: int, max_steps: int | None = None, min_actions: int | None = None):
         self.env, self.policy_fn, self.init_fn = env, policy_fn, init_fn
         self.history_len, self.chunk_len, self.max_steps = history_len, chunk_len, max_steps
         self.traces = 0
         episode = make_episode_fn(env, policy_fn, init_fn, history_len=history_len, chunk_len=chunk_len,
-                                  max_steps=max_steps, record=True)
+                                  max_steps=max_steps, record=True, min_actions=min_actions)
 
         def rollout_episode(key, policy_args):
             self.traces += 1
@@ -219,37 +267,38 @@ class Rollout:
             policy_args = parallel.replicate(policy_args, mesh)
         else:
             keys = jax.device_put(keys)
-        state, entropy, stride, valid, recording = self._jitted(keys, policy_args)
-        return score(state, entropy, stride, valid), recording
+        state, trace, recording = self._jitted(keys, policy_args)
+        return score(state, trace), recording
 
 
-def score(state, entropy, stride, valid) -> EvalResult:
-    """``EvalResult`` of a batch of final env states and the per-replan traces."""
+def score(state, trace: Trace) -> EvalResult:
+    """``EvalResult`` of a batch of final env states and their per-decision traces."""
     success, steps = state.success, state.step
     n_succ = success.sum()
     mean_steps = jnp.where(n_succ > 0, jnp.sum(jnp.where(success, steps, 0)) / jnp.maximum(n_succ, 1), jnp.nan)
     return EvalResult(success_rate=success.mean(dtype=jnp.float32),
                       mean_steps_success=mean_steps.astype(jnp.float32), success=success, steps=steps,
-                      entropy=entropy, stride=stride, valid=valid)
+                      **trace._asdict())
 
 
 def rollout_episodes(policy_fn: StatefulPolicyFn, init_fn: InitFn, task: str | MjxEnv, num_episodes: int,
                      key: jax.Array, *, history_len: int, chunk_len: int, max_steps: int | None = None,
-                     policy_args=()) -> tuple[EvalResult, Recording]:
+                     policy_args=(), min_actions: int | None = None) -> tuple[EvalResult, Recording]:
     """One-off ``Rollout``: ``evaluate_stateful`` that also returns the batched ``Recording`` (qpos (E, T+1, nq),
     body_pos (E, n, 3)), e.g. to render a video of an evaluated episode. Compiles on every call: keep a ``Rollout``
     to evaluate repeatedly."""
     rollout = Rollout(_resolve(task), policy_fn, init_fn, history_len=history_len, chunk_len=chunk_len,
-                      max_steps=max_steps)
+                      max_steps=max_steps, min_actions=min_actions)
     return rollout(num_episodes, key, policy_args)
 
 
 def evaluate_stateful(policy_fn: StatefulPolicyFn, init_fn: InitFn, task: str | MjxEnv, num_episodes: int,
                       key: jax.Array, *, history_len: int, chunk_len: int, max_steps: int | None = None,
-                      policy_args=()) -> EvalResult:
+                      policy_args=(), min_actions: int | None = None) -> EvalResult:
     """``evaluate`` for a policy that carries its own state (see the module docstring)."""
     return rollout_episodes(policy_fn, init_fn, task, num_episodes, key, history_len=history_len,
-                            chunk_len=chunk_len, max_steps=max_steps, policy_args=policy_args)[0]
+                            chunk_len=chunk_len, max_steps=max_steps, policy_args=policy_args,
+                            min_actions=min_actions)[0]
 
 
 def _no_state(obs, key):

@@ -7,7 +7,7 @@ import argparse
 import dataclasses
 import os
 import sys
-from typing import TypeVar
+from typing import Callable, TypeVar
 
 import tyro
 
@@ -35,3 +35,13 @@ def parse_with_run_inference(cls: type[T], argv: list[str] | None = None, descri
                               if f.default is not dataclasses.MISSING}
             default = cls(**{**field_defaults, "checkpoint": known.checkpoint, "inference": stored})
     return tyro.cli(cls, args=argv, default=default, description=description)
+
+
+def run_main(cls: type[T], main: Callable[[T], object], description: str | None = None,
+             argv: list[str] | None = None) -> None:
+    """Parse ``cls`` (``parse_with_run_inference``) and run ``main``; a bad value or a missing file ends the
+    program with its one-line message instead of a traceback."""
+    try:
+        main(parse_with_run_inference(cls, argv, description))
+    except (ValueError, FileNotFoundError) as e:
+        raise SystemExit(f"error: {e}")

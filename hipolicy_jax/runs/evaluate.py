@@ -37,15 +37,15 @@ def evaluate_run(run: Run, inference: InferenceConfig, *, episodes: int = 20, se
     plain, _ = ev.rollout(p.params, p.normalizer, episodes, key, thresholds, entropy_guided=False)
     percentiles = calib.get("percentiles") if (calib and source == calibration.CALIBRATION_FILE) else None
     files = {"trace": plots.plot_entropy_traces(
-        eg, thresholds, cfg.chunk.strides, cfg.chunk.chunk_len, os.path.join(out, "entropy_trace.png"),
+        eg, thresholds, cfg.chunk.strides, os.path.join(out, "entropy_trace.png"),
         episodes=trace_episodes, percentiles=percentiles,
         title=f"{run.task} @ step {p.step}: entropy-guided execution, thresholds from {source}")}
     video_episode = None
     fmt = video.resolve_format(video_format)
     if fmt != "none":
         files["video"], video_episode = video.save_episode_video(
-            ev.env, eg, rec, cfg.chunk.chunk_len, os.path.join(out, f"rollout.{fmt}"), backend=video_backend,
-            height=video_height, width=video_width)
+            ev.env, eg, rec, os.path.join(out, f"rollout.{fmt}"), backend=video_backend, height=video_height,
+            width=video_width)
     with_eg, without_eg = result_record(eg), result_record(plain)
     report = {"task": run.task, "run_dir": run.run_dir, "checkpoint_step": p.step, "strides": list(cfg.chunk.strides),
               "objective": cfg.objective, "episodes": episodes, "seed": seed,

@@ -25,7 +25,7 @@ from hipolicy_jax.envs.base import PROPRIO_DIM
 from hipolicy_jax.envs.demos import check_buffer, default_data_path, load_or_collect
 from hipolicy_jax.evaluation import calibration
 from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
-from hipolicy_jax.runs.store import Run, load_run, read_json, write_inference, write_json
+from hipolicy_jax.runs.store import Run, eval_key, load_run, read_json, write_inference, write_json
 from hipolicy_jax.trainer import fit, run_keys
 
 # CPU-sized defaults: the paper's windowing (strides 1/2/3, L_h 3, L_c 8) with a small U-Net.
@@ -122,14 +122,15 @@ def train(cfg: RunConfig) -> dict:
         # always keys["eval"]: at the final step this equals calibration.json's (and experiments.calibrate's)
         return evaluator.calibrate(params, train_ds.normalizer, val_ds, keys["eval"])
 
-    def evaluate(params, thresholds, step):
-        res = evaluator.evaluate(params, train_ds.normalizer, cfg.eval.episodes,
-                                 jax.random.fold_in(keys["eval"], step), thresholds)
-        return eval_summary(res)
+    def evaluate(params, thresholds):
+        # every evaluation of the run starts from the same initial states (eval_key of the training seed), so
+        # checkpoints compare on equal terms and experiments.evaluate's defaults reproduce the final numbers
+        return eval_summary(evaluator.evaluate(params, train_ds.normalizer, cfg.eval.episodes,
+                                               eval_key(cfg.train.seed), thresholds))
 
     def eval_fn(state, step):
         thresholds, entropies = calibrate(state.ema_params)
-        summary = evaluate(state.ema_params, thresholds, step)
+        summary = evaluate(state.ema_params, thresholds)
         last.update(step=step, thresholds=thresholds, entropies=entropies, summary=summary)
         print(f"\n[eval @ {step}] " + ", ".join(f"{k}={v:.3g}" for k, v in summary.items()))
         return summary
@@ -143,13 +144,14 @@ def train(cfg: RunConfig) -> dict:
         thresholds, entropies, final = last["thresholds"], last["entropies"], last["summary"]
     else:
         thresholds, entropies = calibrate(params)
-        final = evaluate(params, thresholds, step) if cfg.final_eval else None
+        final = evaluate(params, thresholds) if cfg.final_eval else None
     calibration.write_calibration(
         calibration.calibration_record(entropies, thresholds, policy.chunk.num_freqs, cfg.inference,
                                        source="demos", seed=cfg.train.seed, checkpoint_step=step, task=cfg.task),
         os.path.join(out, calibration.CALIBRATION_FILE))
     summary = {"task": cfg.task, "steps": step, "param_count": result.meta["param_count"],
-               "thresholds": list(thresholds), "eval": final,
+               "thresholds": list(thresholds), "eval": final, "eval_episodes": cfg.eval.episodes,
+               "eval_seed": cfg.train.seed,
                "final_loss": float(np.mean(result.losses[-50:])) if result.losses else None,
                "wall_time_s": time.perf_counter() - t0, "out": os.path.abspath(out)}
     write_json(os.path.join(out, "summary.json"), summary)

@@ -1,0 +1,109 @@
+"""Experiment budgets and the run layout of the paper tables: a budget fixes the policy, training, evaluation and
+inference settings (``smoke`` / ``cpu`` / ``gpu``), a variant is a set of config changes on top of it, and every run
+lives at ``<runs>/<budget>/<task>/<obs>/<variant>/seed<k>``. ``experiments.paper`` builds its tables from these and
+``benchmarks`` find their runs with them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import Any, NamedTuple
+
+from hipolicy_jax.config import EvalConfig, InferenceConfig, ModelConfig, PolicyConfig, TrainConfig, replace
+from hipolicy_jax.envs.base import PROPRIO_DIM
+from hipolicy_jax.envs.demos import default_data_path
+from hipolicy_jax.runs.train import CPU_POLICY, CPU_TRAIN, RunConfig
+
+
+class Budget(NamedTuple):
+    """Everything a budget fixes: policy / training configs, demos, evaluation episodes and inference settings."""
+
+    policy: PolicyConfig
+    train: TrainConfig
+    eval: EvalConfig
+    inference: InferenceConfig
+    demos: int
+    val_ratio: float
+    note: str
+
+
+BUDGETS: dict[str, Budget] = {
+    "smoke": Budget(
+        policy=PolicyConfig(model=ModelConfig(size="tiny", fusion_heads=2)),
+        train=TrainConfig(batch_size=16, num_steps=12, warmup_steps=2, log_every=6, ckpt_every=6),
+        eval=EvalConfig(episodes=3, every=0),
+        inference=InferenceConfig(num_samples=4, sampler="auto", num_steps=2, calib_windows=16),
+        demos=6, val_ratio=0.34, note="tiny model, 12 steps x batch 16 on 6 demos; 3 episodes, N=4, DDIM 2 steps"),
+    "cpu": Budget(
+        policy=CPU_POLICY,
+        train=dataclasses.replace(CPU_TRAIN, num_steps=2000),
+        eval=EvalConfig(episodes=50, every=0),
+        inference=InferenceConfig(num_samples=16, sampler="auto", num_steps=10, calib_windows=128),
+        demos=100, val_ratio=0.1, note="CPU model, 2000 steps x batch 64 on 100 demos; 50 episodes, N=16, DDIM 10"),
+    "gpu": Budget(
+        policy=PolicyConfig(model=ModelConfig(size="paper")),
+        train=TrainConfig(batch_size=128, num_steps=20000, lr=1e-4, warmup_steps=500, log_every=100,
+                          ckpt_every=2000),
+        eval=EvalConfig(episodes=100, every=0),
+        inference=InferenceConfig(num_samples=100, sampler="ddpm", calib_windows=256),
+        demos=100, val_ratio=0.1,
+        note="paper-size model, 20000 steps x batch 128 on 100 demos; 100 episodes, N=100, DDPM 100 steps"),
+}
+
+# Config changes per observation type. Vision policies read proprioception only from the state (objects are seen
+# through the camera), as DP / DP3; DP3 predicts the clean sample, as its release.
+OBS_CHANGES: dict[str, dict[str, Any]] = {
+    "state": {},
+    "image": {"encoder.obs_type": "image", "encoder.state_dims": PROPRIO_DIM},
+    "pointcloud": {"encoder.obs_type": "pointcloud", "encoder.state_dims": PROPRIO_DIM,
+                   "diffusion.prediction_type": "sample"},
+}
+# Changes of an observation type on one budget. On the cpu budget DP3 sees 128 points: a point-cloud train step at
+# batch 64 takes 0.43 s with 128 points, 1.51 s with 512 on 2 cores (benchmarks/results/train_step_cpu.json);
+# press_button's camera view holds ~160 points in the crop box.
+BUDGET_OBS_CHANGES: dict[tuple[str, str], dict[str, Any]] = {("cpu", "pointcloud"): {"encoder.num_points": 128}}
+
+DP = (("chunk.strides", (1,)),)  # single frequency: Diffusion Policy
+
+
+_ABBREV = {"chunk.obs_horizon": "lh", "chunk.chunk_len": "lc", "model.condition": "cond-", "objective": ""}
+
+
+def variant_name(changes: tuple[tuple[str, Any], ...]) -> str:
+    """Canonical run-dir name of a set of config changes: 'hipolicy' (none), 'dp' (one stride), else e.g.
+    'lh1', 'cond-low', 'nofusion', 's1-2', 'flow' (the flow-matching head)."""
+    changes = tuple(sorted(changes))
+    if not changes:
+        return "hipolicy"
+    if changes == DP:
+        return "dp"
+    parts = []
+    for key, value in changes:
+        if key == "chunk.strides":
+            parts.append("s" + "-".join(str(s) for s in value))
+        elif key == "model.fusion":
+            parts.append("fusion" if value else "nofusion")
+        else:
+            parts.append(_ABBREV.get(key, key.replace(".", "-") + "-") + str(value))
+    return "_".join(parts)
+
+
+def run_dir(runs: str, budget: str, task: str, obs_type: str, changes, seed: int) -> str:
+    """``<runs>/<budget>/<task>/<obs>/<variant>/seed<k>``."""
+    return os.path.join(runs, budget, task, obs_type, variant_name(changes), f"seed{seed}")
+
+
+def run_config(budget: str, task: str, obs_type: str, changes, seed: int, *, runs: str = "runs/paper",
+               data: str = "data", eval_episodes: int | None = None, progress: bool = True) -> RunConfig:
+    """The ``RunConfig`` of one run: the budget's configs + the observation type's + the variant's changes, the
+    seed, its run dir under ``runs`` and its demo buffer under ``data``."""
+    b = BUDGETS[budget]
+    policy = replace(b.policy, **{**OBS_CHANGES[obs_type], **BUDGET_OBS_CHANGES.get((budget, obs_type), {}),
+                                  **dict(changes)})
+    demos = os.path.join(data, os.path.basename(default_data_path(task, policy.encoder, b.demos)))
+    episodes = b.eval.episodes if eval_episodes is None else eval_episodes
+    return RunConfig(task=task, out=run_dir(runs, budget, task, obs_type, changes, seed), data=demos,
+                     episodes=b.demos, val_ratio=b.val_ratio, policy=policy,
+                     train=dataclasses.replace(b.train, seed=seed), eval=dataclasses.replace(b.eval, episodes=episodes),
+                     inference=b.inference, progress=progress, final_eval=False)

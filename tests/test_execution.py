@@ -1,0 +1,86 @@
+"""Execution strategies: AAC's chunk size and temporal ensembling against closed forms; the episode loop runs
+variable-length decisions."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hipolicy_jax import envs
+from hipolicy_jax.config import ChunkConfig, InferenceConfig
+from hipolicy_jax.evaluation import execution, rollout
+from hipolicy_jax.sampling import action_entropy
+
+
+@pytest.mark.parametrize("h,k", [([0, 0, 0, 5, 5, 5, 5, 5], 3),  # uncertainty jumps after step 3
+                                 ([1, 1, 1, 1], 4),  # flat: the whole chunk
+                                 ([3, 2, 1, 0], 4),  # falling: the whole chunk
+                                 ([0, 9, 9, 9], 1),  # uncertain from step 2 on: one action
+                                 ([2.0], 1)])
+def test_aac_chunk_size_closed_forms(h, k):
+    assert int(execution.aac_chunk_size(jnp.asarray(h, jnp.float32))) == k
+
+
+def test_step_entropies_average_to_the_sampler_entropy():
+    x = jax.random.normal(jax.random.key(0), (16, 8, 3)) * jnp.linspace(0.1, 1.0, 8)[None, :, None]
+    h = execution.step_entropies(x)
+    assert h.shape == (8,) and bool(jnp.all(jnp.diff(h) > 0))  # the spread grows along the chunk
+    np.testing.assert_allclose(float(h.mean()), float(action_entropy(x)), rtol=1e-5)
+
+
+def _decision(actions, stride=1, entropy=0.0):
+    actions = jnp.asarray(actions, jnp.float32)
+    return execution.Decision(chunks=actions[None], entropy=jnp.float32(entropy), freq_index=jnp.int32(0),
+                              stride=jnp.int32(stride), actions=actions)
+
+
+def test_temporal_ensembling_weights_closed_form():
+    """ACT's weights exp(-m·i), i = 0 for the oldest of the stored predictions of the current step."""
+    m, chunk = 0.5, ChunkConfig(strides=(1,), chunk_len=3)
+    te = execution.TemporalEnsembling(decay=m)
+    state = te.init(chunk, 1)
+    out, state = te.decide(_decision([[1.0], [2.0], [3.0]]), state, chunk)
+    assert out.actions.shape == (1, 1) and int(out.num_actions) == 1 and float(out.actions[0, 0]) == 1.0
+    out, state = te.decide(_decision([[10.0], [20.0], [30.0]]), state, chunk)
+    w = math.exp(-m)  # the newest prediction (10) is one step younger than the oldest (2)
+    assert float(out.actions[0, 0]) == pytest.approx((2.0 + w * 10.0) / (1.0 + w), rel=1e-6)
+    out, state = te.decide(_decision([[100.0], [0.0], [0.0]]), state, chunk)
+    expect = (3.0 + math.exp(-m) * 20.0 + math.exp(-2 * m) * 100.0) / (1 + math.exp(-m) + math.exp(-2 * m))
+    assert float(out.actions[0, 0]) == pytest.approx(expect, rel=1e-6)
+    out, state = te.decide(_decision([[7.0], [0.0], [0.0]]), state, chunk)  # the first chunk no longer covers t
+    expect = (30.0 + math.exp(-m) * 0.0 + math.exp(-2 * m) * 7.0) / (1 + math.exp(-m) + math.exp(-2 * m))
+    assert float(out.actions[0, 0]) == pytest.approx(expect, rel=1e-6) and int(state.count) == 3
+
+
+def test_chunk_and_aac_decide():
+    chunk = ChunkConfig(strides=(1,), chunk_len=4)
+    samples = jnp.stack([jnp.zeros((4, 2)), jnp.concatenate([jnp.zeros((2, 2)), jnp.ones((2, 2))])])
+    d = execution.Decision(chunks=samples, entropy=jnp.float32(0.0), freq_index=jnp.int32(0), stride=jnp.int32(1),
+                           actions=samples[0])
+    out, _ = execution.ChunkExecution().decide(d, (), chunk)
+    assert int(out.num_actions) == 4
+    out, _ = execution.AdaptiveChunking().decide(d, (), chunk)
+    assert int(out.num_actions) == 2  # the samples agree on 2 steps, then split
+    with pytest.raises(ValueError, match="inference.execution: 'aac' reads the entropy of N >= 2"):
+        execution.make_execution(InferenceConfig(execution="aac", num_samples=1))
+
+
+def test_episode_loop_executes_the_decided_number_of_actions():
+    """A policy that asks for 1, 2, 3, 1, 2, 3, ... actions: decisions start where the previous ones ended."""
+    env = envs.make("press_button")
+
+    def policy(obs_history, key, count, args):
+        tcp = obs_history["state"][-1, :3]
+        action = jnp.concatenate([tcp, jnp.zeros((1,))])
+        n = count % 3 + 1
+        return rollout.PolicyOutput(jnp.tile(action, (4, 1)), jnp.int32(1), jnp.float32(n), n), count + 1
+
+    res = rollout.evaluate_stateful(policy, lambda obs, key: jnp.zeros((), jnp.int32), env, 2, jax.random.key(0),
+                                    history_len=1, chunk_len=4, max_steps=11, min_actions=1)
+    valid = np.asarray(res.valid)
+    assert res.valid.shape == (2, 11) and valid.sum(axis=1).tolist() == [6, 6]
+    np.testing.assert_array_equal(np.asarray(res.start)[0, :6], [0, 1, 3, 6, 7, 9])
+    np.testing.assert_array_equal(np.asarray(res.executed)[0, :6], [1, 2, 3, 1, 2, 2])  # the last one hits the limit
+    np.testing.assert_array_equal(np.asarray(res.steps), [11, 11])
