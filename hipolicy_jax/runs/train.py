@@ -43,6 +43,7 @@ class RunConfig:
     out: str = ""  # default runs/<task>_<obs_type>_seed<seed>
     data: str = ""  # default data/<task>_<obs keys>[_<camera>]_<episodes>.zarr (collected when missing)
     episodes: int = 100  # expert demos to collect (when --data does not exist)
+    demo_seed: int = 0  # seed of that collection: the buffer's path has no training seed, so every seed shares it
     val_ratio: float = 0.1  # held-out demo episodes (threshold calibration)
     policy: PolicyConfig = CPU_POLICY
     train: TrainConfig = CPU_TRAIN
@@ -105,7 +106,7 @@ def train(cfg: RunConfig) -> dict:
     out = cfg.out_dir()
     os.makedirs(out, exist_ok=True)
     t0 = time.perf_counter()
-    buffer = load_or_collect(cfg.task, cfg.policy.encoder, cfg.episodes, cfg.data_path(), seed=cfg.train.seed,
+    buffer = load_or_collect(cfg.task, cfg.policy.encoder, cfg.episodes, cfg.data_path(), seed=cfg.demo_seed,
                              progress=cfg.progress)
     policy = cfg.policy
     train_ds, val_ds = train_heldout_datasets(buffer, policy.chunk, policy.encoder.obs_keys, cfg.val_ratio,
