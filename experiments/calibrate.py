@@ -1,4 +1,6 @@
-"""Calibrate entropy thresholds: ``python -m experiments.calibrate --checkpoint RUN_DIR [--inference.percentiles 10 70]``.
+"""Calibrate entropy thresholds: ``python -m experiments.calibrate --checkpoint RUN_DIR``.
+
+``--inference.percentiles 10 70`` (the default for M = 3) sets the percentiles.
 
 Measures the trained policy's Gaussian action entropy (N samples per window) either on the held-out demos
 (``--source demos``: the validation episodes of the run's demo buffer, split as in training) or on its own

@@ -7,7 +7,8 @@ default to the run's ``inference.json`` (so the numbers reproduce training's eva
 (``python -m experiments.calibrate``) unless ``--inference.thresholds`` gives them (M+1 values, or the M-1 inner
 ones). The same episodes (same initial states) run twice in one compiled batched rollout: with entropy-guided
 execution and without it (always stride 1). With the defaults the entropy-guided numbers reproduce the final
-evaluation ``experiments.train`` reported (same settings, same initial states). Writes into ``RUN_DIR/eval/`` (or ``--out``):
+evaluation ``experiments.train`` reported (same settings, same initial states). Writes into ``RUN_DIR/eval/`` (or
+``--out``):
 
 - ``eval.json``: success rate, mean execution steps (all / successful episodes), stride fractions, per episode
   success and steps, for both evaluations, and the settings used;

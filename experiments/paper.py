@@ -6,47 +6,54 @@ Tables (sub-commands), each trained with ``hipolicy_jax.runs.train`` and evaluat
   ``--obs-types state pointcloud`` also DP3 vs DP3+HiPolicy (point-cloud encoder, sample prediction).
 - ``ablation``: HiPolicy with hierarchical / low-only / high-only observation conditions, without fusion, and
   without the hierarchy (one stride, i.e. DP).
-- ``entropy``: success and execution steps of DP, DP+HiPolicy without entropy-guided execution (always stride 1)
-  and with it (the same trained model, two evaluations).
+- ``execution``: success, steps to success and decisions of DP executing whole chunks, with temporal ensembling
+  (DP+TE) and with adaptive action chunking (DP+AAC), and of DP+HiPolicy always at stride 1 (w/o EG) and
+  entropy-guided (HiPolicy) — the same trained runs, evaluated with different execution strategies.
 - ``thresholds``: entropy-guided execution with thresholds at several percentile pairs of held-out demo entropies.
 - ``hparams``: L_h, L_c and M around the defaults (3, 8, 3).
+- ``pilot``: the protocol's DP-only pilot that picks each task's low-data regime (``--regime rlow``).
 
 Budgets: ``smoke`` (tiny model, a dozen steps: checks the pipeline in a couple of minutes), ``cpu`` (CPU model,
 2000 steps: about 10 minutes of training per run on 2 cores), ``gpu`` (paper-size model, N=100, 100 DDPM steps).
 Runs go to ``--runs/<budget>/<task>/<obs>/<variant>/seed<k>`` and are shared between tables (DP, HiPolicy); an
-existing finished run is reused and an unfinished one resumed. Evaluations are cached per run in
-``paper_evals.json``. Outputs: ``--results/<table>.md`` (mean ± std over seeds, with the command and seeds at the
-top), ``<table>.png`` and ``<table>.json`` (every per-seed number).
+existing finished run is reused and an unfinished one resumed. Every evaluation is kept in the run's record,
+``--records/<budget>/<task>/<obs>/<variant>/seed<k>.json`` (committed: configs, calibration, per-episode outcomes),
+so ``--from-records`` rebuilds a table from git alone and a campaign continues on a new machine without retraining
+what is recorded. Outputs: ``--results/<table>.md`` (mean and 95 % bootstrap interval over seeds × episodes, paired
+comparisons, the command, seeds and cost at the top), ``<table>.png`` and ``<table>.json`` (every record).
+The protocol of the campaign these tables belong to is ``results/PROTOCOL.md``.
 
-    python -m experiments.paper entropy --budget smoke --tasks press_button --seeds 0
-    python -m experiments.paper main --budget cpu --tasks press_button latch_door --seeds 0 1 2
+    python -m experiments.paper execution --budget smoke --tasks press_button --seeds 0
+    python -m experiments.paper pilot --budget cpu
+    python -m experiments.paper main --budget cpu --regime rlow --seeds 0 1 2
+    python -m experiments.paper main --from-records
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import shlex
 import sys
 import time
-from typing import Any, Literal, NamedTuple
+from typing import Any, Literal
 
 import numpy as np
 import tyro
 
-from hipolicy_jax.config import InferenceConfig, PolicyConfig
+from tqdm.auto import tqdm
+
+from hipolicy_jax.config import PolicyConfig
 from hipolicy_jax.envs import TASK_PRECISE
-from hipolicy_jax.evaluation import calibration
-from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
-from hipolicy_jax.runs.budgets import BUDGETS, DP, run_config, variant_name
-from hipolicy_jax.runs.calibrate import run_entropies
-from hipolicy_jax.runs.store import Run, eval_key, make_evaluator, read_json, write_json
-from hipolicy_jax.runs.train import RunConfig, ensure_trained
+from hipolicy_jax.evaluation import stats
+from hipolicy_jax.runs.budgets import BUDGETS, DP, regime_changes, run_config
+from hipolicy_jax.runs.campaign import Campaign, Column, choose_low_regime, pilot_candidates
+from hipolicy_jax.runs.store import write_json
+from hipolicy_jax.runs.train import RunConfig
 
 TaskName = Literal["press_button", "latch_door", "stack_cubes", "pick_place"]
 ObsName = Literal["state", "image", "pointcloud"]
-TABLES = ("main", "ablation", "entropy", "thresholds", "hparams")
+TABLES = ("main", "ablation", "execution", "thresholds", "hparams", "pilot")
 BASELINE_NAME = {"state": "DP", "image": "DP (image)", "pointcloud": "DP3"}
 
 
@@ -55,10 +62,13 @@ class PaperArgs:
     budget: Literal["smoke", "cpu", "gpu"] = "cpu"
     tasks: tuple[TaskName, ...] = ("press_button", "stack_cubes", "latch_door", "pick_place")
     seeds: tuple[int, ...] = (0, 1, 2)
+    regime: Literal["r100", "rlow"] = "r100"  # demo regime (results/PROTOCOL.md): 100 demos, or the pilot's Rlow
     runs: str = "runs/paper"  # run dirs: <runs>/<budget>/<task>/<obs>/<variant>/seed<k>
     results: str = "results"  # <results>/<table>.{md,png,json}
+    records: str = "results/runs"  # per-run JSON records (committed): <records>/<budget>/<task>/<obs>/<variant>/...
     data: str = "data"  # demo buffers: <data>/<task>_<obs keys>_<episodes>.zarr
-    episodes: int | None = None  # evaluation episodes (default: the budget's)
+    episodes: int | None = None  # evaluation episodes per seed (default: the budget's)
+    from_records: bool = False  # build the table from the records alone: never train nor evaluate
     progress: bool = True
 
 
@@ -80,8 +90,16 @@ class AblationArgs(PaperArgs):
 
 
 @dataclasses.dataclass(frozen=True)
-class EntropyArgs(PaperArgs):
-    """Success and execution steps of DP, DP+HiPolicy w/o entropy-guided execution, DP+HiPolicy."""
+class ExecutionArgs(PaperArgs):
+    """Execution strategies: DP (whole chunks), DP+TE (temporal ensembling), DP+AAC (adaptive action chunking),
+    HiPolicy always at stride 1 (w/o EG) and entropy-guided (HiPolicy)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class PilotArgs(PaperArgs):
+    """The protocol's DP-only pilot that chooses each task's Rlow regime (seed 0)."""
+
+    seeds: tuple[int, ...] = (0,)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,8 +118,8 @@ class HparamsArgs(PaperArgs):
     rows: tuple[tuple[int, int, int], ...] = ((3, 8, 3), (1, 8, 3), (5, 8, 3), (3, 4, 3), (3, 8, 1))
 
 
-SUBCOMMANDS: dict[str, type] = {"main": MainArgs, "ablation": AblationArgs, "entropy": EntropyArgs,
-                                "thresholds": ThresholdsArgs, "hparams": HparamsArgs}
+SUBCOMMANDS: dict[str, type] = {"main": MainArgs, "ablation": AblationArgs, "execution": ExecutionArgs,
+                                "thresholds": ThresholdsArgs, "hparams": HparamsArgs, "pilot": PilotArgs}
 
 
 def table_name(args: PaperArgs) -> str:
@@ -133,19 +151,6 @@ def command_line(args: PaperArgs) -> str:
 # ----------------------------------------------------------------------------------------------------- runs
 
 
-class Column(NamedTuple):
-    """One evaluated setting: a trained variant (obs type + config changes) and how it is executed.
-
-    ``percentiles``: thresholds at these percentiles of the run's held-out demo entropies instead of its
-    ``calibration.json``; ``guided=False``: always the highest frequency."""
-
-    label: str
-    obs_type: str = "state"
-    changes: tuple[tuple[str, Any], ...] = ()
-    guided: bool = True
-    percentiles: tuple[float, ...] | None = None
-
-
 def eval_episodes(args: PaperArgs) -> int:
     """Evaluation episodes per seed: ``--episodes`` or the budget's."""
     return BUDGETS[args.budget].eval.episodes if args.episodes is None else args.episodes
@@ -157,60 +162,39 @@ def train_args(args: PaperArgs, task: str, obs_type: str, changes, seed: int) ->
                       eval_episodes=eval_episodes(args), progress=args.progress)
 
 
-def _thresholds(run: Run, col: Column, inference: InferenceConfig, evaluator: Evaluator, seed: int,
-                cache: dict) -> tuple[float, ...] | None:
-    """The column's thresholds for a run: its ``calibration.json`` or, with ``col.percentiles``, those percentiles of
-    its held-out demo entropies (measured once per run); None without entropy guidance or for one frequency."""
-    m = run.policy.cfg.chunk.num_freqs
-    if m == 1 or not col.guided:
-        return None
-    if col.percentiles is None:
-        return calibration.resolve_thresholds(inference, m, calibration.read_calibration(run.run_dir))[0]
-    if run.run_dir not in cache:
-        cache[run.run_dir] = run_entropies(run, inference, "demos", seed=seed, evaluator=evaluator)
-    return calibration.calibrate_thresholds(cache[run.run_dir], m, col.percentiles)
+def campaign(args: PaperArgs) -> Campaign:
+    return Campaign(args.budget, runs=args.runs, data=args.data, records=args.records, episodes=eval_episodes(args),
+                    from_records=args.from_records, progress=args.progress)
 
 
-def evaluate_cached(run: Run, evaluator: Evaluator, episodes: int, seed: int, thresholds, guided: bool) -> dict:
-    """``eval_summary`` of one evaluation of a run, cached in ``<run>/paper_evals.json`` by its settings."""
-    inf = evaluator.inference
-    key = json.dumps({"step": run.policy.step, "episodes": episodes, "num_samples": inf.num_samples,
-                      "sampler": inf.sampler, "num_steps": inf.num_steps, "seed": seed, "guided": guided,
-                      "thresholds": None if thresholds is None else [float(t) for t in thresholds]})
-    path = os.path.join(run.run_dir, "paper_evals.json")
-    cache = read_json(path) if os.path.exists(path) else {}
-    if key not in cache:
-        p = run.policy
-        result = evaluator.evaluate(p.params, p.normalizer, episodes, eval_key(seed), thresholds,
-                                    entropy_guided=guided)
-        cache[key] = {**eval_summary(result), "thresholds": None if thresholds is None else list(thresholds)}
-        write_json(path, cache)
-    return cache[key]
+def _table_record(camp: Campaign, task: str, col: Column, seed: int, run_changes: dict, evaluation: dict) -> dict:
+    """One row of a table's JSON: the evaluation's numbers, its run dir and the run's training time."""
+    run = camp.run_config(task, col, seed, run_changes).out_dir()
+    training = camp.record(task, col, seed, run_changes).get("training") or {}
+    return {"task": task, "seed": seed, "column": col.label, "regime": run_changes, "run": os.path.relpath(run),
+            "training_s": training.get("wall_time_s"), **{k: v for k, v in evaluation.items() if k != "settings"}}
 
 
 def collect(args: PaperArgs, columns: list[Column]) -> list[dict]:
-    """Train what is missing and evaluate every (task, seed, column) → one record per evaluation. One
-    ``Evaluator`` per (task, variant) serves all its seeds (one compile)."""
-    inference = BUDGETS[args.budget].inference
-    entropy_cache: dict = {}
-    evaluators: dict = {}
-    records = []
-    t0 = time.perf_counter()
-    for task in args.tasks:
-        for seed in args.seeds:
-            for col in columns:
-                run = ensure_trained(train_args(args, task, col.obs_type, col.changes, seed))
-                ident = (task, run.policy.cfg, run.action_dim)
-                if ident not in evaluators:
-                    evaluators[ident] = make_evaluator(run, inference)
-                ev = evaluators[ident]
-                th = _thresholds(run, col, inference, ev, seed, entropy_cache)
-                summary = evaluate_cached(run, ev, eval_episodes(args), seed, th, col.guided)
-                records.append({"task": task, "seed": seed, "column": col.label,
-                                "run": os.path.relpath(run.run_dir), **summary})
-                print(f"[paper {time.perf_counter() - t0:7.0f}s] {task} seed {seed} {col.label}: success "
-                      f"{summary['success_rate']:.2f}, steps (successful) {summary['mean_steps_success']:.1f}",
-                      flush=True)
+    """Every (task, seed, column) evaluation of the table, from its run's record or trained / evaluated and recorded
+    (one progress bar over them, with an ETA) → one record per evaluation (per-episode outcomes included)."""
+    camp = campaign(args)
+    jobs = [(t, s, c) for t in args.tasks for s in args.seeds for c in columns]
+    records, missing = [], []
+    bar = tqdm(jobs, desc=f"{table_name(args)} ({args.regime})", unit="eval", disable=not args.progress,
+               dynamic_ncols=True)
+    for task, seed, col in bar:
+        bar.set_postfix_str(f"{task} seed {seed} {col.label}")
+        evaluation = camp.evaluate(task, col, seed, regime_changes(args.regime, task))
+        if evaluation is None:
+            missing.append(f"{task} seed {seed} {col.label}")
+            continue
+        records.append(_table_record(camp, task, col, seed, regime_changes(args.regime, task), evaluation))
+        tqdm.write(f"[paper] {task} seed {seed} {col.label}: success {evaluation['success_rate']:.2f}, steps "
+                   f"(successful) {evaluation['mean_steps_success']:.1f}")
+    if missing:
+        print(f"[paper] {len(missing)} evaluations have no record under {args.records} (shown as '–'): "
+              + "; ".join(missing[:8]) + (" ..." if len(missing) > 8 else ""), flush=True)
     return records
 
 
@@ -239,40 +223,108 @@ def _nanmean(x) -> float:
     return float(np.mean(x[np.isfinite(x)])) if np.isfinite(x).any() else np.nan
 
 
+def _matching(records: list[dict], seed: int, match: dict) -> dict | None:
+    hit = [r for r in records if r["seed"] == seed and all(r.get(k) == v for k, v in match.items())]
+    return hit[0] if hit else None
+
+
 def values(records: list[dict], metric: str, seeds, **match) -> list[float]:
     """Per-seed ``metric`` of the records matching ``match`` (NaN where a seed is missing)."""
     out = []
     for s in seeds:
-        hit = [r for r in records if r["seed"] == s and all(r.get(k) == v for k, v in match.items())]
-        v = hit[0].get(metric) if hit else None
+        r = _matching(records, s, match)
+        v = r.get(metric) if r else None
         out.append(np.nan if v is None else float(v))
     return out
 
 
-def task_average(records: list[dict], metric: str, seeds, tasks, **match) -> list[float]:
-    """Per seed, the mean of ``metric`` over ``tasks`` (NaN-ignoring)."""
-    per_task = np.array([values(records, metric, seeds, task=t, **match) for t in tasks], np.float64)
-    return [_nanmean(per_task[:, j]) for j in range(len(seeds))] if len(tasks) else [np.nan] * len(seeds)
+def outcomes(records: list[dict], metric: str, seeds, **match) -> dict[int, np.ndarray]:
+    """Per seed, the per-episode outcomes behind ``metric`` of the matching records: success (0/1) for
+    ``success_rate``, the steps of the successful episodes (NaN for failures) for ``mean_steps_success``, the
+    decisions per episode for ``mean_decisions``; the per-seed value itself where a record has no episodes."""
+    out = {}
+    for s in seeds:
+        r = _matching(records, s, match)
+        if r is None:
+            continue
+        if "success" in r and metric in ("success_rate", "mean_steps_success", "mean_decisions"):
+            success = np.asarray(r["success"], np.float64)
+            if metric == "success_rate":
+                out[s] = success
+            elif metric == "mean_steps_success":
+                out[s] = np.where(success > 0, np.asarray(r["steps"], np.float64), np.nan)
+            elif "decisions" in r:
+                out[s] = np.asarray(r["decisions"], np.float64)
+        if s not in out and r.get(metric) is not None:
+            out[s] = np.asarray([r[metric]], np.float64)
+    return out
+
+
+def interval_text(iv: stats.Interval, scale: float = 1.0, digits: int = 1) -> str:
+    """'m [lo, hi]' (a 95 % bootstrap interval), 'm' when it has no width, '–' when undefined."""
+    if not np.isfinite(iv.mean):
+        return "–"
+    m, lo, hi = (x * scale for x in iv)
+    if lo == hi:
+        return f"{m:.{digits}f}"
+    return f"{m:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+
+
+def ci(records: list[dict], metric: str, seeds, tasks, scale: float = 1.0, **match) -> str:
+    """The cell of ``metric`` over ``tasks`` (one task: its seeds × episodes; several: the task average)."""
+    groups = [outcomes(records, metric, seeds, task=t, **match) for t in tasks]
+    iv = stats.bootstrap_mean(groups[0]) if len(groups) == 1 else stats.bootstrap_average(groups)
+    return interval_text(iv, scale)
+
+
+def paired_cell(records: list[dict], seeds, tasks, new: str, base: str) -> str:
+    """``new`` − ``base`` success in points on the shared initial states: 'Δ [lo, hi], p=… (wins / ties / loses)'
+    with the hierarchical bootstrap interval and the exact McNemar test, pooled over ``tasks``."""
+    a = [outcomes(records, "success_rate", seeds, task=t, column=new) for t in tasks]
+    b = [outcomes(records, "success_rate", seeds, task=t, column=base) for t in tasks]
+    diffs = []
+    for x, y in zip(a, b):
+        shared = sorted(set(x) & set(y))
+        if shared and all(x[s].size == y[s].size > 1 for s in shared):
+            diffs.append({s: x[s] - y[s] for s in shared})
+    if not diffs:
+        return "–"
+    iv = stats.bootstrap_mean(diffs[0]) if len(diffs) == 1 else stats.bootstrap_average(diffs)
+    pooled_a = {(i, s): v for i, x in enumerate(a) for s, v in x.items()}
+    pooled_b = {(i, s): v for i, y in enumerate(b) for s, v in y.items()}
+    _, _, p = stats.mcnemar_exact({k: v > 0 for k, v in pooled_a.items()}, {k: v > 0 for k, v in pooled_b.items()})
+    return f"{iv.mean * 100:+.1f} [{iv.low * 100:+.1f}, {iv.high * 100:+.1f}], p={p:.2g} ({stats.verdict(iv)})"
+
+
+def cost_note(records: list[dict]) -> str:
+    """What the table's runs and evaluations cost (from the records: training wall time of each distinct run,
+    evaluation time of each evaluation), in CPU-hours of this 2-core machine kind."""
+    train_s = {r["run"]: r.get("training_s") or 0.0 for r in records}
+    eval_s = sum(r.get("eval_s") or 0.0 for r in records)
+    total = sum(train_s.values()) + eval_s
+    return (f"Cost: {total / 3600 * 2:.1f} CPU-hours on 2 cores ({sum(train_s.values()) / 3600:.1f} h training "
+            f"{len(train_s)} runs, {eval_s / 3600:.1f} h evaluating), from the records.")
 
 
 def results_header(title: str, args: PaperArgs, notes: list[str]) -> str:
     b = BUDGETS[args.budget]
     lines = [f"# {title}", "", f"Command: `{command_line(args)}`", "",
-             f"Seeds: {', '.join(str(s) for s in args.seeds)} (mean ± sample std over seeds). Budget `{args.budget}`: "
-             f"{b.note}; evaluation episodes: {eval_episodes(args)} per seed, the same initial states for "
-             f"every column."]
+             f"Protocol: `results/PROTOCOL.md`. Regime `{args.regime}`; seeds {', '.join(str(s) for s in args.seeds)}. "
+             f"Cells: mean over seeds with its 95 % bootstrap interval over seeds × episodes. Budget "
+             f"`{args.budget}`: {b.note}; evaluation episodes: {eval_episodes(args)} per seed, the same initial "
+             f"states for every column."]
     lines += [""] + [f"- {n}" for n in notes] if notes else []
     return "\n".join(lines) + "\n"
 
 
 def write_results(args: PaperArgs, title: str, notes: list[str], table: str, records: list[dict],
                   figure=None) -> str:
-    """Write ``<results>/<table>.md`` (+ ``.json`` with every record, + ``.png`` from ``figure(path)``)."""
-    name = table_name(args)
+    """Write ``<results>/<table>[_rlow].md`` (+ ``.json`` with every record, + ``.png`` from ``figure(path)``)."""
+    name = table_name(args) + ("" if args.regime == "r100" else f"_{args.regime}")
     os.makedirs(args.results, exist_ok=True)
     md = os.path.join(args.results, f"{name}.md")
     with open(md, "w") as f:
-        f.write(results_header(title, args, notes) + "\n" + table + "\n")
+        f.write(results_header(title, args, [*notes, cost_note(records)]) + "\n" + table + "\n")
     write_json(os.path.join(args.results, f"{name}.json"),
                {"command": command_line(args), "args": dataclasses.asdict(args), "records": records})
     if figure is not None:
@@ -283,16 +335,17 @@ def write_results(args: PaperArgs, title: str, notes: list[str], table: str, rec
 def success_by_task_figure(args: PaperArgs, records: list[dict], labels: list[str], title: str):
     """``figure(path)``: success-rate bars per task, one bar per column label."""
     def figure(path):
-        series = {c: [values(records, "success_rate", args.seeds, task=t, column=c) for t in args.tasks]
+        series = {c: [outcomes(records, "success_rate", args.seeds, task=t, column=c) for t in args.tasks]
                   for c in labels}
-        return bar_figure(path, list(args.tasks), [("success rate", series)], title)
+        return bar_figure(path, list(args.tasks), [("success rate (%)", series)], title, scale=100.0)
 
     return figure
 
 
-def bar_figure(path: str, groups: list[str], panels: list[tuple[str, dict[str, list[list[float]]]]],
-               title: str) -> str:
-    """Grouped bar chart(s): per panel (ylabel, {series: per-group per-seed values}), mean with std error bars."""
+def bar_figure(path: str, groups: list[str], panels: list[tuple[str, dict[str, list[dict]]]], title: str,
+               scale: float = 1.0) -> str:
+    """Grouped bar chart(s): per panel (ylabel, {series: per-group per-seed outcomes}), the mean with its 95 %
+    bootstrap interval as the error bar."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -304,12 +357,11 @@ def bar_figure(path: str, groups: list[str], panels: list[tuple[str, dict[str, l
         width = 0.8 / max(len(series), 1)
         x = np.arange(len(groups))
         for i, (name, per_group) in enumerate(series.items()):
-            means, stds = [], []
-            for vals in per_group:
-                v = np.asarray([a for a in vals if np.isfinite(a)], np.float64)
-                means.append(v.mean() if v.size else np.nan)
-                stds.append(v.std(ddof=1) if v.size > 1 else 0.0)
-            ax.bar(x + (i - (len(series) - 1) / 2) * width, means, width, yerr=stds, capsize=2, label=name)
+            ivs = [stats.bootstrap_mean(g, resamples=2000) for g in per_group]
+            means = np.array([iv.mean for iv in ivs]) * scale
+            err = np.array([[iv.mean - iv.low, iv.high - iv.mean] for iv in ivs]).T * scale
+            ax.bar(x + (i - (len(series) - 1) / 2) * width, means, width, yerr=np.nan_to_num(err), capsize=2,
+                   label=name)
         ax.set_xticks(x, groups, rotation=20, ha="right", fontsize=8)
         ax.set_ylabel(ylabel)
         ax.legend(fontsize=7)
@@ -320,38 +372,44 @@ def bar_figure(path: str, groups: list[str], panels: list[tuple[str, dict[str, l
     return path
 
 
-def _rel(base: list[float], new: list[float]) -> str:
-    """' (+x%)': relative change of the mean of ``new`` over the mean of ``base`` ('' when undefined)."""
-    b, n = _nanmean(base), _nanmean(new)
-    return f" ({(n - b) / b * 100:+.0f}%)" if np.isfinite(b) and np.isfinite(n) and b > 0 else ""
+def _rel(base: float, new: float) -> str:
+    """' (+x%)': relative change of ``new`` over ``base`` ('' when undefined)."""
+    return f" ({(new - base) / base * 100:+.0f}%)" if np.isfinite(base) and np.isfinite(new) and base > 0 else ""
+
+
+def _task_mean(records, metric, seeds, tasks, column) -> float:
+    return stats.bootstrap_average([outcomes(records, metric, seeds, task=t, column=column) for t in tasks],
+                                   resamples=1).mean
 
 
 def grouped_rows(args: PaperArgs, records, columns: list[str], metric: str = "success_rate", scale: float = 100.0,
-                 extra=None, rel_to: dict[str, str] | None = None) -> list[list[str]]:
+                 extra=None, rel_to: dict[str, str] | None = None,
+                 paired: list[tuple[str, str]] = ()) -> list[list[str]]:
     """Rows per task, precise tasks first then non-precise, each group followed by its average, then the total.
     ``extra(task) -> list[str]`` adds leading cells; ``rel_to`` {column: baseline column} adds relative gains to
-    average rows."""
+    average rows; ``paired`` [(new, base)] adds a paired-comparison cell per pair."""
     rows = []
     precise = [t for t in args.tasks if TASK_PRECISE[t]]
     other = [t for t in args.tasks if not TASK_PRECISE[t]]
     n_extra = len(extra(args.tasks[0])) if extra else 0
 
-    def avg_row(label, tasks):
-        cells = []
+    def cells(tasks):
+        out = []
         for c in columns:
-            v = task_average(records, metric, args.seeds, tasks, column=c)
-            gain = _rel(task_average(records, metric, args.seeds, tasks, column=rel_to[c]), v) \
-                if rel_to and c in rel_to else ""
-            cells.append(mean_std(v, scale) + gain)
-        return [f"**{label}**"] + [""] * n_extra + cells
+            gain = ""
+            if rel_to and c in rel_to and len(tasks) > 1:
+                gain = _rel(_task_mean(records, metric, args.seeds, tasks, rel_to[c]),
+                            _task_mean(records, metric, args.seeds, tasks, c))
+            out.append(ci(records, metric, args.seeds, tasks, scale, column=c) + gain)
+        return out + [paired_cell(records, args.seeds, tasks, new, base) for new, base in paired]
 
     for name, tasks in (("precise", precise), ("non-precise", other)):
         for t in tasks:
-            rows.append([t] + (extra(t) if extra else [])
-                        + [mean_std(values(records, metric, args.seeds, task=t, column=c), scale) for c in columns])
+            rows.append([t] + (extra(t) if extra else []) + cells([t]))
         if tasks and precise and other:
-            rows.append(avg_row(f"Average ({name})", tasks))
-    rows.append(avg_row("Total average" if precise and other else "Average", list(args.tasks)))
+            rows.append([f"**Average ({name})**"] + [""] * n_extra + cells(tasks))
+    rows.append([f"**{'Total average' if precise and other else 'Average'}**"] + [""] * n_extra
+                + cells(list(args.tasks)))
     return rows
 
 
@@ -378,11 +436,15 @@ def main_table(args: MainArgs) -> str:
     records = collect(args, columns)
     labels = [c.label for c in columns]
     rel = {f"{BASELINE_NAME[o]}+HiPolicy": BASELINE_NAME[o] for o in obs_types}
-    rows = grouped_rows(args, records, labels, rel_to=rel,
+    pairs = [(f"{BASELINE_NAME[o]}+HiPolicy", BASELINE_NAME[o]) for o in obs_types]
+    rows = grouped_rows(args, records, labels, rel_to=rel, paired=pairs,
                         extra=lambda t: ["yes" if TASK_PRECISE[t] else "no", demo_steps(args, t, obs_types)])
-    table = markdown_table(["Task", "Precise", "Demo steps", *labels], rows)
+    table = markdown_table(["Task", "Precise", "Demo steps", *labels, *(f"{a} − {b} (points)" for a, b in pairs)],
+                           rows)
     notes = ["Success rate (%) with entropy-guided execution, thresholds calibrated on held-out demos "
              "(10th / 70th percentiles); relative gain over the baseline in the average rows.",
+             "Paired columns: the per-episode success difference on the shared initial states (seeds both columns "
+             "have), its 95 % bootstrap interval and the exact McNemar p; wins / loses when the interval excludes 0.",
              "DP = one stride (single-frequency Diffusion Policy); DP3 = point-cloud encoder, sample prediction."]
     if "pointcloud" in obs_types:
         pc = train_args(args, args.tasks[0], "pointcloud", (), args.seeds[0]).policy.encoder
@@ -402,8 +464,8 @@ def ablation_table(args: AblationArgs) -> str:
     columns = [Column(label, "state", changes) for label, changes in ABLATION]
     records = collect(args, columns)
     labels = [c.label for c in columns]
-    rows = grouped_rows(args, records, labels)
-    table = markdown_table(["Task", *labels], rows)
+    rows = grouped_rows(args, records, labels, paired=[("Hier.", "w/o Hier.")])
+    table = markdown_table(["Task", *labels, "Hier. − w/o Hier. (points)"], rows)
     notes = ["Success rate (%) with entropy-guided execution. Condition: every frequency segment conditioned on its "
              "own frequency's observations (Hier.), or all on the lowest (Low) / highest (High); w/o Fusion: no "
              "CLS-token attention; w/o Hier.: one stride (DP)."]
@@ -421,47 +483,66 @@ def _stride_cell(records, seeds, **match) -> str:
     return "/".join(f"{100 * np.mean([r.get(k, 0.0) for r in hits]):.0f}" for k in keys)
 
 
-PANELS = (("success rate", "success_rate"), ("steps (successful)", "mean_steps_success"))
+PANELS = (("success rate (%)", "success_rate", 100.0), ("steps (successful)", "mean_steps_success", 1.0))
+EXECUTION = [Column("DP", "state", DP), Column("DP+TE", "state", DP, execution="te"),
+             Column("DP+AAC", "state", DP, execution="aac"), Column("w/o EG", "state", (), guided=False),
+             Column("HiPolicy")]
 
 
-def entropy_table(args: EntropyArgs) -> str:
-    columns = [Column("DP", "state", DP), Column("w/o EG", "state", (), guided=False), Column("HiPolicy")]
-    records = collect(args, columns)
-    header = ["Task", "DP SR", "DP Steps", "w/o EG SR", "w/o EG Steps", "HiPolicy SR", "HiPolicy Steps",
-              "HiPolicy strides (%)"]
+def execution_table(args: ExecutionArgs) -> str:
+    records = collect(args, EXECUTION)
+    labels = [c.label for c in EXECUTION]
+    header = ["Task", *(f"{c} {m}" for c in labels for m in ("SR", "Steps", "Decisions")), "HiPolicy strides (%)",
+              "HiPolicy − DP+AAC (points)", "HiPolicy − DP (points)"]
     rows = []
-    groups = [[t] for t in args.tasks] + [list(args.tasks)]
-    for i, tasks in enumerate(groups):
-        label = tasks[0] if i < len(args.tasks) else "**Average**"
+    groups = [[t] for t in args.tasks] + ([list(args.tasks)] if len(args.tasks) > 1 else [])
+    for tasks in groups:
+        label = tasks[0] if len(tasks) == 1 else "**Average**"
         cells = [label]
-        for c in ("DP", "w/o EG", "HiPolicy"):
-            sr = task_average(records, "success_rate", args.seeds, tasks, column=c)
-            steps = task_average(records, "mean_steps_success", args.seeds, tasks, column=c)
-            gain = ""
-            if c == "HiPolicy" and label == "**Average**":
-                b = _nanmean(task_average(records, "mean_steps_success", args.seeds, tasks, column="w/o EG"))
-                n = _nanmean(steps)
-                gain = f" ({(b - n) / b * 100:+.0f}% faster)" if np.isfinite(b) and np.isfinite(n) and b > 0 else ""
-            cells += [mean_std(sr, 100.0), mean_std(steps) + gain]
+        for c in labels:
+            cells += [ci(records, "success_rate", args.seeds, tasks, 100.0, column=c),
+                      ci(records, "mean_steps_success", args.seeds, tasks, column=c),
+                      ci(records, "mean_decisions", args.seeds, tasks, column=c)]
         cells.append(_stride_cell(records, args.seeds, column="HiPolicy",
                                   **({"task": tasks[0]} if len(tasks) == 1 else {})))
+        cells += [paired_cell(records, args.seeds, tasks, "HiPolicy", "DP+AAC"),
+                  paired_cell(records, args.seeds, tasks, "HiPolicy", "DP")]
         rows.append(cells)
-        if len(args.tasks) == 1:
-            break
     table = markdown_table(header, rows)
-    notes = ["SR: success rate (%). Steps: mean control steps of the successful episodes (over the seeds with any).",
-             "w/o EG: the HiPolicy model executing its highest frequency (stride 1) at every replan; HiPolicy: "
-             "entropy-guided execution with the calibrated thresholds (same trained model, same episodes).",
-             "Strides: share of replans executed at stride 1/2/3."]
+    notes = ["SR: success rate (%). Steps: mean control steps of the successful episodes. Decisions: policy calls "
+             "per episode (each one N-sample sampler call).",
+             "DP: one stride, whole chunks (L_c actions per decision); DP+TE: the same DP run with ACT's temporal "
+             "ensembling (a decision at every step, weights exp(-0.01 i)); DP+AAC: the same DP run with adaptive "
+             "action chunking (k of L_c actions, k from the entropy curve of the N samples); w/o EG: the HiPolicy "
+             "run always at stride 1; HiPolicy: entropy-guided execution with the calibrated thresholds.",
+             "Strides: share of HiPolicy's decisions executed at stride 1/2/3."]
 
     def figure(path):
-        cols = ["DP", "w/o EG", "HiPolicy"]
-        panels = [(ylabel, {c: [values(records, metric, args.seeds, task=t, column=c) for t in args.tasks]
-                            for c in cols})
-                  for ylabel, metric in PANELS]
-        return bar_figure(path, list(args.tasks), panels, "entropy-guided execution")
+        import matplotlib
 
-    return write_results(args, "Entropy-guided execution: success rate (%) and execution steps", notes, table,
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(6.5, 4.2))
+        for i, t in enumerate(args.tasks):
+            for j, c in enumerate(labels):
+                sr = stats.bootstrap_mean(outcomes(records, "success_rate", args.seeds, task=t, column=c),
+                                          resamples=1).mean
+                steps = stats.bootstrap_mean(outcomes(records, "mean_steps_success", args.seeds, task=t, column=c),
+                                             resamples=1).mean
+                ax.scatter(steps, 100 * sr, color=f"C{j}", marker="os^Dv"[i % 5], s=40,
+                           label=c if i == 0 else None)
+        ax.set_xlabel("steps to success (control steps, lower is faster)")
+        ax.set_ylabel("success rate (%)")
+        ax.set_title("speed / success of the execution strategies (marker: task)", fontsize=9)
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        return path
+
+    return write_results(args, "Execution strategies: success rate (%), steps to success and decisions", notes, table,
                          records, figure)
 
 
@@ -477,20 +558,19 @@ def thresholds_table(args: ThresholdsArgs) -> str:
             th = [r["thresholds"] for r in hits if r.get("thresholds")]
             th_cell = ("{" + ", ".join(f"{np.mean([x[k] for x in th]):.2f}" for k in range(1, len(th[0]) - 1)) + "}"
                        if th else "–")
-            rows.append([t, c.label, th_cell,
-                         mean_std(values(records, "success_rate", args.seeds, task=t, column=c.label), 100.0),
-                         mean_std(values(records, "mean_steps_success", args.seeds, task=t, column=c.label)),
+            rows.append([t, c.label, th_cell, ci(records, "success_rate", args.seeds, [t], 100.0, column=c.label),
+                         ci(records, "mean_steps_success", args.seeds, [t], column=c.label),
                          _stride_cell(records, args.seeds, task=t, column=c.label)])
     table = markdown_table(header, rows)
     notes = ["Inner thresholds at the given percentiles of the run's held-out demo entropies (mean over seeds); "
              "higher thresholds execute the highest frequency more often.",
-             "Steps: mean control steps of the successful episodes (over the seeds with any)."]
+             "Steps: mean control steps of the successful episodes."]
 
     def figure(path):
         labels = [c.label for c in columns]
-        panels = [(ylabel, {t: [values(records, metric, args.seeds, task=t, column=c) for c in labels]
+        panels = [(ylabel, {t: [outcomes(records, metric, args.seeds, task=t, column=c) for c in labels]
                             for t in args.tasks})
-                  for ylabel, metric in PANELS]
+                  for ylabel, metric, _ in PANELS]
         return bar_figure(path, labels, panels, "threshold ablation")
 
     return write_results(args, "Entropy thresholds ablation", notes, table, records, figure)
@@ -515,9 +595,8 @@ def hparams_table(args: HparamsArgs) -> str:
     records = collect(args, columns)
     rows = []
     for (lh, lc, m), c in zip(args.rows, columns):
-        per_task = [mean_std(values(records, "success_rate", args.seeds, task=t, column=c.label), 100.0)
-                    for t in args.tasks]
-        avg = mean_std(task_average(records, "success_rate", args.seeds, list(args.tasks), column=c.label), 100.0)
+        per_task = [ci(records, "success_rate", args.seeds, [t], 100.0, column=c.label) for t in args.tasks]
+        avg = ci(records, "success_rate", args.seeds, list(args.tasks), 100.0, column=c.label)
         default = " (default)" if not c.changes else ""
         rows.append([f"{lh}{default}", str(lc), str(m), *per_task] + ([avg] if len(args.tasks) > 1 else []))
     header = ["L_h", "L_c", "M", *args.tasks] + (["Average"] if len(args.tasks) > 1 else [])
@@ -525,15 +604,60 @@ def hparams_table(args: HparamsArgs) -> str:
     notes = ["Success rate (%) with entropy-guided execution; M frequencies = strides 1..M (M=1 is DP)."]
 
     def figure(path):
-        series = {t: [values(records, "success_rate", args.seeds, task=t, column=c.label) for c in columns]
+        series = {t: [outcomes(records, "success_rate", args.seeds, task=t, column=c.label) for c in columns]
                   for t in args.tasks}
-        return bar_figure(path, [c.label for c in columns], [("success rate", series)], "hyper-parameter ablation")
+        return bar_figure(path, [c.label for c in columns], [("success rate (%)", series)],
+                          "hyper-parameter ablation", scale=100.0)
 
     return write_results(args, "Hyper-parameter ablation: success rate (%)", notes, table, records, figure)
 
 
-BUILDERS = {"main": main_table, "ablation": ablation_table, "entropy": entropy_table,
-            "thresholds": thresholds_table, "hparams": hparams_table}
+def pilot_table(args: PilotArgs) -> str:
+    """The protocol's DP-only pilot: DP (seed ``args.seeds[0]``) at 100 demos, then the Rlow candidates until one
+    lands in [15, 85] %; writes ``<results>/pilot.md`` / ``.json`` with the choice per task (to be recorded in
+    results/PROTOCOL.md and ``runs.budgets.REGIMES['rlow']`` before any HiPolicy run of that regime)."""
+    camp = campaign(args)
+    dp = Column("DP", "state", DP)
+    seed = args.seeds[0]
+    rows, records, choices = [], [], {}
+    for task in tqdm(args.tasks, desc="pilot", unit="task", disable=not args.progress):
+        base = camp.evaluate(task, dp, seed)
+        tried = []
+        if base is not None:
+            records.append(_table_record(camp, task, dp, seed, {}, base))
+            for changes in pilot_candidates(base["success_rate"]):
+                ev = camp.evaluate(task, dp, seed, changes)
+                if ev is None:
+                    break
+                tried.append((changes, ev["success_rate"]))
+                records.append(_table_record(camp, task, dp, seed, changes, ev))
+                if 0.15 <= ev["success_rate"] <= 0.85:
+                    break
+        if tried:
+            choice, in_range = choose_low_regime(tried)
+            choices[task] = {"run_changes": choice, "in_range": in_range}
+        desc = ", ".join(f"{_changes_text(c)}: {100 * sr:.0f} %" for c, sr in tried) or "–"
+        chosen = _changes_text(choices[task]["run_changes"]) + ("" if choices[task]["in_range"] else
+                                                               " (closest to 50 %, none in range)") \
+            if task in choices else "–"
+        rows.append([task, "–" if base is None else f"{100 * base['success_rate']:.0f}", desc, chosen])
+    table = markdown_table(["Task", "DP @ 100 demos (%)", "Candidates tried (DP success)", "Rlow"], rows)
+    regimes = {t: c["run_changes"] for t, c in choices.items()}
+    notes = [f"DP only (one stride), seed {seed}, {eval_episodes(args)} evaluation episodes per candidate.",
+             f"Record the choice in results/PROTOCOL.md and in hipolicy_jax/runs/budgets.py: "
+             f"`REGIMES['rlow'] = {regimes!r}`."]
+    write_json(os.path.join(args.results, "pilot_choice.json"), regimes)
+    return write_results(args, "DP pilot: the low-data regime per task", notes, table, records)
+
+
+def _changes_text(changes: dict) -> str:
+    if "episodes" in changes:
+        return f"{changes['episodes']} demos"
+    return ", ".join(f"{k.removeprefix('train.').replace('_', ' ')} {v}" for k, v in changes.items()) or "100 demos"
+
+
+BUILDERS = {"main": main_table, "ablation": ablation_table, "execution": execution_table,
+            "thresholds": thresholds_table, "hparams": hparams_table, "pilot": pilot_table}
 
 
 def main(args: PaperArgs) -> str:

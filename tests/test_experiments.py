@@ -1,11 +1,12 @@
 """Experiment entry points on one tiny trained run: evaluate, calibrate, one ``Evaluator`` across checkpoints, and
-the paper tables (parsing, the markdown writer on fake numbers, and one smoke ``paper entropy`` run reusing the
-trained run)."""
+the paper tables (parsing, the markdown writer on fake numbers, records and rebuilding from them, and one smoke
+``paper execution`` run reusing the trained run)."""
 
 import dataclasses
 import json
 import math
 import os
+import re
 import shlex
 
 import imageio.v3 as iio
@@ -18,6 +19,8 @@ from hipolicy_jax.config import InferenceConfig
 
 from experiments import calibrate, evaluate, paper
 from hipolicy_jax import envs
+from hipolicy_jax.runs.budgets import variant_name
+from hipolicy_jax.runs.campaign import Campaign, Column, choose_low_regime, pilot_candidates
 from hipolicy_jax.runs.cli import parse_with_run_inference
 from hipolicy_jax.runs.store import load_run, make_evaluator
 from hipolicy_jax.runs.train import train
@@ -30,8 +33,9 @@ SMOKE = paper.BUDGETS["smoke"]
 def tiny(tmp_path_factory):
     """The smoke budget's HiPolicy run of press_button, seed 0, trained into a tmp dir (as ``paper`` lays it out)."""
     root = tmp_path_factory.mktemp("paper")
-    args = paper.EntropyArgs(budget="smoke", tasks=(TASK,), seeds=(0,), runs=str(root / "runs"),
-                             results=str(root / "results"), data=str(root / "data"), progress=False)
+    args = paper.ExecutionArgs(budget="smoke", tasks=(TASK,), seeds=(0,), runs=str(root / "runs"),
+                               results=str(root / "results"), records=str(root / "records"), data=str(root / "data"),
+                               progress=False)
     targs = paper.train_args(args, TASK, "state", (), 0)
     summary = train(targs)
     assert summary["steps"] == SMOKE.train.num_steps
@@ -187,21 +191,26 @@ def test_paper_parsing_and_command_round_trip():
         paper.parse_args(["figures"])
     # variants are named by their config changes, so tables share runs (DP, HiPolicy)
     base = paper.BUDGETS["cpu"].policy
-    assert paper.variant_name(paper.hparam_changes(3, 8, 3, base)) == "hipolicy"
-    assert paper.variant_name(paper.hparam_changes(3, 8, 1, base)) == paper.variant_name(paper.DP) == "dp"
-    assert paper.variant_name(paper.hparam_changes(1, 4, 2, base)) == "lc4_lh1_s1-2"
+    assert variant_name(paper.hparam_changes(3, 8, 3, base)) == "hipolicy"
+    assert variant_name(paper.hparam_changes(3, 8, 1, base)) == variant_name(paper.DP) == "dp"
+    assert variant_name(paper.hparam_changes(1, 4, 2, base)) == "lc4_lh1_s1-2"
+    assert variant_name((("objective", "flow"),)) == "flow"
 
 
-def _fake_records(columns, tasks, seeds, rng):
+def _fake_records(columns, tasks, seeds, rng, episodes=10):
     records = []
     for t in tasks:
         for s in seeds:
             for c in columns:
-                sr = float(rng.integers(0, 11)) / 10
-                records.append({"task": t, "seed": s, "column": c, "success_rate": sr,
-                                "mean_steps_success": float(rng.uniform(40, 120)) if sr > 0 else float("nan"),
-                                "mean_steps": 100.0, "stride1_frac": 0.5, "stride2_frac": 0.3, "stride3_frac": 0.2,
-                                "thresholds": [-math.inf, -1.0, -0.5, math.inf]})
+                success = rng.random(episodes) < rng.uniform(0.2, 0.9)
+                steps = rng.integers(40, 120, episodes)
+                records.append({"task": t, "seed": s, "column": c, "success_rate": float(success.mean()),
+                                "mean_steps_success": float(steps[success].mean()) if success.any() else float("nan"),
+                                "mean_steps": float(steps.mean()), "stride1_frac": 0.5, "stride2_frac": 0.3,
+                                "stride3_frac": 0.2, "thresholds": [-math.inf, -1.0, -0.5, math.inf],
+                                "success": success.tolist(), "steps": steps.tolist(),
+                                "decisions": (steps // 8 + 1).tolist(), "run": f"{t}/{c}/{s}", "training_s": 60.0,
+                                "eval_s": 5.0})
     return records
 
 
@@ -213,18 +222,22 @@ def test_paper_tables_on_fake_numbers(tmp_path, monkeypatch):
                   data=str(tmp_path / "data"), progress=False)
     tasks = ("press_button", "latch_door", "stack_cubes")
     for args in (paper.MainArgs(tasks=tasks, obs_types=("state", "pointcloud"), **common),
-                 paper.AblationArgs(tasks=tasks, **common), paper.EntropyArgs(tasks=tasks, **common),
+                 paper.AblationArgs(tasks=tasks, **common), paper.ExecutionArgs(tasks=tasks, **common),
                  paper.ThresholdsArgs(**common), paper.HparamsArgs(tasks=("press_button", "latch_door"), **common)):
         md = paper.main(args)
         name = paper.table_name(args)
         text = open(md).read()
-        assert paper.command_line(args) in text and "Seeds: 0, 1, 2" in text
+        assert paper.command_line(args) in text and "seeds 0, 1, 2" in text and "CPU-hours" in text
         assert (tmp_path / "res" / f"{name}.png").stat().st_size > 0
         assert len(_load(tmp_path / "res" / f"{name}.json")["records"]) > 0
         table = [line for line in text.splitlines() if line.startswith("|")]
         assert len({line.count("|") for line in table}) == 1, text  # every row has the header's columns
-        assert " ± " in text
+        assert re.search(r"\d+\.\d \[\d+\.\d, \d+\.\d\]", text), text  # mean [95 % interval]
     main_md = open(tmp_path / "res" / "main.md").read()
+    assert "DP+HiPolicy − DP (points)" in main_md and re.search(r"p=[\d.e-]+ \((wins|ties|loses)\)", main_md)
+    execution_md = open(tmp_path / "res" / "execution.md").read()
+    for label in ("DP SR", "DP+TE SR", "DP+AAC SR", "w/o EG SR", "HiPolicy SR", "HiPolicy Decisions"):
+        assert label in execution_md
     # precise tasks (press_button, stack_cubes) come first, each group is followed by its average
     order = [main_md.index(k) for k in ("| press_button", "| stack_cubes", "Average (precise)", "| latch_door",
                                         "Average (non-precise)", "Total average")]
@@ -259,21 +272,52 @@ def test_record_trajectory_matches_batched_rollout():
     assert frames.shape == (3, 24, 32, 3) and frames.dtype == np.uint8
 
 
+def test_campaign_records_an_evaluation_and_rebuilds_from_it(tiny, tmp_path):
+    """A campaign evaluation of a trained run is written to the run's record (configs, calibration, per-episode
+    outcomes); a campaign reading records only returns it without the run dir, and nothing for an unrecorded one."""
+    args, run = tiny
+    camp = Campaign("smoke", runs=args.runs, data=args.data, records=str(tmp_path / "records"), episodes=2,
+                    progress=False)
+    evaluation = camp.evaluate(TASK, Column("HiPolicy"), 0)
+    assert len(evaluation["success"]) == len(evaluation["steps"]) == len(evaluation["decisions"]) == 2
+    path = tmp_path / "records" / "smoke" / TASK / "state" / "hipolicy" / "seed0.json"
+    record = _load(path)
+    assert record["task"] == TASK and record["seed"] == 0 and record["policy"]["chunk"]["strides"] == [1, 2, 3]
+    assert record["calibration"]["thresholds"] == _load(os.path.join(run, "calibration.json"))["thresholds"]
+    same = json.dumps([evaluation], sort_keys=True)  # NaN-safe equality
+    assert json.dumps(list(record["evaluations"].values()), sort_keys=True) == same
+    offline = Campaign("smoke", runs=str(tmp_path / "no_runs"), records=str(tmp_path / "records"), episodes=2,
+                       from_records=True)
+    assert json.dumps([offline.evaluate(TASK, Column("HiPolicy"), 0)], sort_keys=True) == same
+    assert offline.evaluate(TASK, Column("w/o EG", guided=False), 0) is None  # not recorded: never evaluated
+    assert offline.evaluate(TASK, Column("HiPolicy"), 1) is None
+
+
+def test_pilot_candidates_and_choice():
+    assert pilot_candidates(0.94) == [{"episodes": 50}, {"episodes": 25}, {"episodes": 12}]
+    assert pilot_candidates(0.05) == [{"train.num_steps": 4000}, {"train.num_steps": 8000}]
+    tried = [({"episodes": 50}, 0.9), ({"episodes": 25}, 0.6), ({"episodes": 12}, 0.2)]
+    assert choose_low_regime(tried) == ({"episodes": 25}, True)
+    assert choose_low_regime([({"episodes": 50}, 0.95), ({"episodes": 25}, 0.9), ({"episodes": 12}, 0.12)]) == \
+        ({"episodes": 12}, False)  # none in range: the closest to 50 %
+
+
 @pytest.mark.slow
-def test_paper_entropy_smoke_reuses_trained_run(tiny):
+def test_paper_execution_smoke_reuses_trained_run_and_rebuilds_from_records(tiny):
     args, run = tiny
     md = paper.main(args)  # trains only the DP run; the HiPolicy run of the fixture is reused
     text = open(md).read()
-    assert "python -m experiments.paper entropy --budget smoke" in text and "Seeds: 0" in text
-    assert "| press_button |" in text and os.path.getsize(os.path.join(args.results, "entropy.png")) > 0
-    records = _load(os.path.join(args.results, "entropy.json"))["records"]
-    assert {r["column"] for r in records} == {"DP", "w/o EG", "HiPolicy"}
+    assert "python -m experiments.paper execution --budget smoke" in text and "seeds 0" in text
+    assert "| press_button |" in text and os.path.getsize(os.path.join(args.results, "execution.png")) > 0
+    records = _load(os.path.join(args.results, "execution.json"))["records"]
+    assert {r["column"] for r in records} == {"DP", "DP+TE", "DP+AAC", "w/o EG", "HiPolicy"}
     assert all(0.0 <= r["success_rate"] <= 1.0 for r in records)
     by = {r["column"]: r for r in records}
-    assert by["w/o EG"]["run"] == by["HiPolicy"]["run"] == os.path.abspath(run)
+    assert by["w/o EG"]["run"] == by["HiPolicy"]["run"] == os.path.relpath(run)
     assert by["w/o EG"]["stride1_frac"] == 1.0 and by["DP"]["stride1_frac"] == 1.0
-    evals = _load(os.path.join(run, "paper_evals.json"))
-    assert len(evals) == 2  # with and without entropy guidance, cached
+    assert by["DP+TE"]["mean_actions_per_decision"] == 1.0
+    again = paper.main(dataclasses.replace(args, from_records=True, runs=args.runs + "_gone"))
+    assert open(again).read().split("Cost:")[1] == text.split("Cost:")[1]  # the same table from the records
 
 
 def test_env_camera_and_data_follow_the_encoder(tmp_path):

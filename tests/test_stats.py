@@ -54,3 +54,11 @@ def test_paired_difference_and_mcnemar():
     assert stats.verdict(stats.Interval(0.1, -0.02, 0.2)) == "ties"
     with pytest.raises(ValueError, match="same episodes"):
         stats.paired_difference({0: [1, 0]}, {0: [1, 0, 1]})
+
+
+def test_task_average_interval():
+    a = {0: np.ones(50), 1: np.ones(50)}
+    b = {0: np.r_[np.ones(10), np.zeros(40)], 1: np.r_[np.ones(20), np.zeros(30)]}
+    iv = stats.bootstrap_average([a, b, {0: [math.nan]}], resamples=4000)  # the empty task is left out
+    assert iv.mean == pytest.approx((1.0 + 0.3) / 2)
+    assert iv.low < iv.mean < iv.high and iv.high <= 1.0

@@ -61,6 +61,20 @@ def bootstrap_mean(groups, *, level: float = 0.95, resamples: int = RESAMPLES, s
     return Interval(point, float(np.quantile(boot, a)), float(np.quantile(boot, 1.0 - a)))
 
 
+def bootstrap_average(tasks: Sequence, *, level: float = 0.95, resamples: int = RESAMPLES,
+                      seed: int = 0) -> Interval:
+    """The mean over tasks of each task's ``bootstrap_mean`` point, with an interval from resampling every task's
+    seeds and episodes independently (``tasks``: one ``groups`` per task; tasks without values are left out)."""
+    per_task = [g for g in (_as_groups(t) for t in tasks) if g]
+    if not per_task:
+        return Interval(math.nan, math.nan, math.nan)
+    rng = np.random.default_rng(seed)
+    point = float(np.mean([np.mean([x.mean() for x in g]) for g in per_task]))
+    boot = np.mean([_resampled_means(g, resamples, rng) for g in per_task], axis=0)
+    a = (1.0 - level) / 2.0
+    return Interval(point, float(np.quantile(boot, a)), float(np.quantile(boot, 1.0 - a)))
+
+
 def paired_difference(a: Mapping[int, Sequence[float]], b: Mapping[int, Sequence[float]], *, level: float = 0.95,
                       resamples: int = RESAMPLES, seed: int = 0) -> Interval:
     """Mean of ``a − b`` over the (seed, episode) pairs the two columns share (seeds in both, episodes index-aligned:
@@ -102,4 +116,5 @@ def verdict(diff: Interval) -> str:
     return "ties"
 
 
-__all__ = ["Interval", "RESAMPLES", "bootstrap_mean", "mcnemar_exact", "paired_difference", "verdict"]
+__all__ = ["Interval", "RESAMPLES", "bootstrap_average", "bootstrap_mean", "mcnemar_exact", "paired_difference",
+           "verdict"]

@@ -38,9 +38,9 @@ BUDGETS: dict[str, Budget] = {
     "cpu": Budget(
         policy=CPU_POLICY,
         train=dataclasses.replace(CPU_TRAIN, num_steps=2000),
-        eval=EvalConfig(episodes=50, every=0),
+        eval=EvalConfig(episodes=100, every=0),
         inference=InferenceConfig(num_samples=16, sampler="auto", num_steps=10, calib_windows=128),
-        demos=100, val_ratio=0.1, note="CPU model, 2000 steps x batch 64 on 100 demos; 50 episodes, N=16, DDIM 10"),
+        demos=100, val_ratio=0.1, note="CPU model, 2000 steps x batch 64 on 100 demos; 100 episodes, N=16, DDIM 10"),
     "gpu": Budget(
         policy=PolicyConfig(model=ModelConfig(size="paper")),
         train=TrainConfig(batch_size=128, num_steps=20000, lr=1e-4, warmup_steps=500, log_every=100,
@@ -89,21 +89,62 @@ def variant_name(changes: tuple[tuple[str, Any], ...]) -> str:
     return "_".join(parts)
 
 
-def run_dir(runs: str, budget: str, task: str, obs_type: str, changes, seed: int) -> str:
-    """``<runs>/<budget>/<task>/<obs>/<variant>/seed<k>``."""
-    return os.path.join(runs, budget, task, obs_type, variant_name(changes), f"seed{seed}")
+# Run-level changes of a demo regime (keys: "episodes" = demos, "train.<field>"), per task. R100 is the budgets' own
+# 100 demos; Rlow comes from results/PROTOCOL.md's DP pilot (python -m experiments.paper pilot) and is filled in
+# here when the pilot has chosen it.
+REGIMES: dict[str, dict[str, dict[str, Any]]] = {"r100": {}, "rlow": {}}
+
+
+def regime_changes(regime: str, task: str) -> dict[str, Any]:
+    """The run-level changes of ``regime`` for ``task``; ValueError when the regime has no entry for the task."""
+    if regime not in REGIMES:
+        raise ValueError(f"regime: must be one of {sorted(REGIMES)}, got {regime!r}")
+    if regime == "r100":
+        return {}
+    if task not in REGIMES[regime]:
+        raise ValueError(f"regime {regime}: no entry for {task} yet in hipolicy_jax/runs/budgets.py REGIMES; run the "
+                         f"DP pilot first (python -m experiments.paper pilot --tasks {task}) and record its choice")
+    return dict(REGIMES[regime][task])
+
+
+def run_changes_name(run_changes: dict[str, Any] | None) -> str:
+    """Dir-name suffix of run-level changes: '' for none, e.g. '_d25' (25 demos), '_t4000' (4000 steps)."""
+    parts = []
+    for key, value in sorted((run_changes or {}).items()):
+        if key == "episodes":
+            parts.append(f"d{value}")
+        elif key == "train.num_steps":
+            parts.append(f"t{value}")
+        elif key.startswith("train."):
+            parts.append(f"{key[6:].replace('_', '')}{value}")
+        else:
+            raise ValueError(f"run_changes: unknown key {key!r} (expected 'episodes' or 'train.<field>')")
+    return "".join("_" + p for p in parts)
+
+
+def run_dir(runs: str, budget: str, task: str, obs_type: str, changes, seed: int,
+            run_changes: dict[str, Any] | None = None) -> str:
+    """``<runs>/<budget>/<task>/<obs>/<variant><run changes>/seed<k>``."""
+    return os.path.join(runs, budget, task, obs_type, variant_name(changes) + run_changes_name(run_changes),
+                        f"seed{seed}")
 
 
 def run_config(budget: str, task: str, obs_type: str, changes, seed: int, *, runs: str = "runs/paper",
-               data: str = "data", eval_episodes: int | None = None, progress: bool = True) -> RunConfig:
+               data: str = "data", eval_episodes: int | None = None, progress: bool = True,
+               run_changes: dict[str, Any] | None = None) -> RunConfig:
     """The ``RunConfig`` of one run: the budget's configs + the observation type's + the variant's changes, the
-    seed, its run dir under ``runs`` and its demo buffer under ``data``."""
+    seed, its run dir under ``runs`` and its demo buffer under ``data``. ``run_changes`` (a regime's): the number of
+    demos (``episodes``) and training settings (``train.<field>``)."""
     b = BUDGETS[budget]
+    run_changes = dict(run_changes or {})
+    run_changes_name(run_changes)  # validates the keys
     policy = replace(b.policy, **{**OBS_CHANGES[obs_type], **BUDGET_OBS_CHANGES.get((budget, obs_type), {}),
                                   **dict(changes)})
-    demos = os.path.join(data, os.path.basename(default_data_path(task, policy.encoder, b.demos)))
+    demos = int(run_changes.get("episodes", b.demos))
+    train = replace(b.train, seed=seed, **{k[6:]: v for k, v in run_changes.items() if k.startswith("train.")})
+    data_path = os.path.join(data, os.path.basename(default_data_path(task, policy.encoder, demos)))
     episodes = b.eval.episodes if eval_episodes is None else eval_episodes
-    return RunConfig(task=task, out=run_dir(runs, budget, task, obs_type, changes, seed), data=demos,
-                     episodes=b.demos, val_ratio=b.val_ratio, policy=policy,
-                     train=dataclasses.replace(b.train, seed=seed), eval=dataclasses.replace(b.eval, episodes=episodes),
-                     inference=b.inference, progress=progress, final_eval=False)
+    return RunConfig(task=task, out=run_dir(runs, budget, task, obs_type, changes, seed, run_changes), data=data_path,
+                     episodes=demos, val_ratio=b.val_ratio, policy=policy, train=train,
+                     eval=dataclasses.replace(b.eval, episodes=episodes), inference=b.inference, progress=progress,
+                     final_eval=False)

@@ -1,0 +1,165 @@
+"""An experiment campaign: many (task, seed, column) evaluations of trained runs, each kept as a small JSON record.
+
+A **column** is a trained variant (observation type + config changes on top of a budget) and how it is executed
+(entropy guidance on / off, thresholds at other percentiles, an execution strategy). ``evaluate_column`` returns the
+column's evaluation of one run: from the run's **record** when it holds it, else by training (or resuming) the run
+and evaluating it, after which the record is written. Records live at ``<records>/<budget>/<task>/<obs>/<variant>/
+seed<k>.json`` (the run dir's layout) and hold the run's configs, training summary and calibration and, per
+evaluation, the per-episode success and steps: small enough for git, enough to rebuild every table (``from_records``
+never trains nor evaluates) and to continue a campaign on a new machine.
+
+``Campaign`` owns what evaluations share: one ``Evaluator`` per (task, policy config, inference settings), so all
+seeds of a variant compile once, and the held-out entropies of each run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from hipolicy_jax.config import InferenceConfig
+from hipolicy_jax.evaluation import calibration
+from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
+from hipolicy_jax.runs.budgets import BUDGETS, run_config
+from hipolicy_jax.runs.calibrate import run_entropies
+from hipolicy_jax.runs.store import Run, eval_key, make_evaluator, read_json, write_json
+from hipolicy_jax.runs.train import RunConfig, ensure_trained
+
+RECORD_VERSION = 1
+
+
+class Column(NamedTuple):
+    """One evaluated setting: a trained variant (obs type + config changes) and how it is executed.
+
+    ``percentiles``: thresholds at these percentiles of the run's held-out demo entropies instead of its
+    ``calibration.json``; ``guided=False``: always the highest frequency; ``execution``: the execution strategy
+    (``InferenceConfig.execution``)."""
+
+    label: str
+    obs_type: str = "state"
+    changes: tuple[tuple[str, Any], ...] = ()
+    guided: bool = True
+    percentiles: tuple[float, ...] | None = None
+    execution: str = "chunk"
+
+
+def record_path(records: str, runs: str, cfg: RunConfig) -> str:
+    """``<records>/<the run dir relative to runs>.json``."""
+    return os.path.join(records, os.path.relpath(cfg.out_dir(), runs)) + ".json"
+
+
+def evaluation_key(inference: InferenceConfig, col: Column, episodes: int, eval_seed: int) -> str:
+    """The canonical id of one evaluation of a run (what its numbers depend on besides the run)."""
+    settings = {"num_samples": inference.num_samples, "sampler": inference.sampler,
+                "num_steps": inference.num_steps, "execution": col.execution,
+                "te_decay": inference.te_decay if col.execution == "te" else None, "guided": col.guided,
+                "percentiles": None if col.percentiles is None else [float(p) for p in col.percentiles],
+                "episodes": episodes, "eval_seed": eval_seed}
+    return json.dumps(settings, sort_keys=True)
+
+
+def run_summary(run: Run) -> dict:
+    """What a record keeps of a trained run: configs, task, data, training summary, calibration."""
+    meta = run.policy.meta
+    summary_path = os.path.join(run.run_dir, "summary.json")
+    summary = read_json(summary_path) if os.path.exists(summary_path) else {}
+    calib = calibration.read_calibration(run.run_dir) or {}
+    return {"task": run.task, "seed": run.seed, "checkpoint_step": run.policy.step, "policy": meta["policy"],
+            "train": meta["train"], "data": os.path.relpath(meta.get("data", "")), "val_ratio": meta.get("val_ratio"),
+            "param_count": meta.get("param_count"),
+            "training": {k: summary.get(k) for k in ("steps", "final_loss", "wall_time_s")},
+            "calibration": {k: calib.get(k) for k in ("thresholds", "percentiles", "num_windows", "inference")}}
+
+
+class Campaign:
+    """Evaluations of one budget's runs, cached in records; ``from_records`` only reads records."""
+
+    def __init__(self, budget: str, *, runs: str = "runs/paper", data: str = "data", records: str = "results/runs",
+                 episodes: int | None = None, from_records: bool = False, progress: bool = True):
+        self.budget, self.runs, self.data, self.records = budget, runs, data, records
+        self.inference = BUDGETS[budget].inference
+        self.episodes = BUDGETS[budget].eval.episodes if episodes is None else episodes
+        self.from_records, self.progress = from_records, progress
+        self._evaluators: dict = {}
+        self._entropies: dict = {}
+
+    def run_config(self, task: str, col: Column, seed: int, run_changes: dict | None = None) -> RunConfig:
+        return run_config(self.budget, task, col.obs_type, col.changes, seed, runs=self.runs, data=self.data,
+                          eval_episodes=self.episodes, progress=self.progress, run_changes=run_changes)
+
+    def _evaluator(self, run: Run, inference: InferenceConfig) -> Evaluator:
+        ident = (run.task, run.policy.cfg, run.action_dim, inference.sampler_settings())
+        if ident not in self._evaluators:
+            self._evaluators[ident] = make_evaluator(run, inference)
+        return self._evaluators[ident]
+
+    def _thresholds(self, run: Run, col: Column, ev: Evaluator) -> tuple[float, ...] | None:
+        m = run.policy.cfg.chunk.num_freqs
+        if m == 1 or not col.guided:
+            return None
+        if col.percentiles is None:
+            return calibration.resolve_thresholds(self.inference, m, calibration.read_calibration(run.run_dir))[0]
+        if run.run_dir not in self._entropies:
+            self._entropies[run.run_dir] = run_entropies(run, self.inference, "demos", evaluator=ev)
+        return calibration.calibrate_thresholds(self._entropies[run.run_dir], m, col.percentiles)
+
+    def record(self, task: str, col: Column, seed: int, run_changes: dict | None = None) -> dict:
+        """The (task, seed) run's record of this column's variant ({} before one exists)."""
+        path = record_path(self.records, self.runs, self.run_config(task, col, seed, run_changes))
+        return read_json(path) if os.path.exists(path) else {}
+
+    def evaluate(self, task: str, col: Column, seed: int, run_changes: dict | None = None) -> dict | None:
+        """The column's evaluation of the (task, seed) run: ``eval_summary`` plus per-episode ``success`` /
+        ``steps`` / ``decisions`` and the ``thresholds``; from the record, else trained / evaluated and recorded.
+        None when ``from_records`` and the record lacks it."""
+        cfg = self.run_config(task, col, seed, run_changes)
+        path = record_path(self.records, self.runs, cfg)
+        record = read_json(path) if os.path.exists(path) else {}
+        inference = dataclasses.replace(self.inference, execution=col.execution)
+        key = evaluation_key(inference, col, self.episodes, seed)
+        if key in record.get("evaluations", {}):
+            return record["evaluations"][key]
+        if self.from_records:
+            return None
+        run = ensure_trained(cfg)
+        ev = self._evaluator(run, inference)
+        thresholds = self._thresholds(run, col, ev)
+        t0 = time.perf_counter()
+        result = ev.evaluate(run.policy.params, run.policy.normalizer, self.episodes, eval_key(seed), thresholds,
+                             entropy_guided=col.guided)
+        valid = np.asarray(result.valid)
+        evaluation = {"settings": json.loads(key), **eval_summary(result),
+                      "thresholds": None if thresholds is None else [float(t) for t in thresholds],
+                      "success": [bool(x) for x in np.asarray(result.success)],
+                      "steps": [int(x) for x in np.asarray(result.steps)],
+                      "decisions": [int(x) for x in valid.sum(axis=1)], "eval_s": time.perf_counter() - t0}
+        record = {"version": RECORD_VERSION, "budget": self.budget, "run_dir": os.path.relpath(run.run_dir),
+                  **run_summary(run), "evaluations": {**record.get("evaluations", {}), key: evaluation}}
+        write_json(path, record)
+        return evaluation
+
+
+def pilot_candidates(dp_at_100: float) -> list[dict]:
+    """The protocol's Rlow candidates after DP's success at 100 demos: fewer demos (50, 25, 12) unless DP is at the
+    floor (< 15 %), then more training steps (4000, 8000) at 100 demos."""
+    if dp_at_100 >= 0.15:
+        return [{"episodes": n} for n in (50, 25, 12)]
+    return [{"train.num_steps": k} for k in (4000, 8000)]
+
+
+def choose_low_regime(tried: list[tuple[dict, float]], low: float = 0.15, high: float = 0.85) -> tuple[dict, bool]:
+    """(Rlow's run changes, whether DP lands in [low, high]): the first candidate in range, else the one closest to
+    the middle of the range."""
+    for changes, success in tried:
+        if low <= success <= high:
+            return changes, True
+    return min(tried, key=lambda cs: abs(cs[1] - (low + high) / 2))[0], False
+
+
+__all__ = ["Campaign", "Column", "choose_low_regime", "evaluation_key", "pilot_candidates", "record_path",
+           "run_summary"]
