@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import math
 import os
 import threading
@@ -20,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from hipolicy_jax import jsonio
 from hipolicy_jax.config import PolicyConfig, replace
 from hipolicy_jax.data.normalizer import Normalizer
 from hipolicy_jax.models.policy_net import PolicyNet, init_policy_params, param_count
@@ -231,17 +231,9 @@ def write_results(name: str, payload: dict, out_dir: str | None = None) -> str:
     meta = {"benchmark": name, "device": device_kind(), "device_description": device_description(),
             "jax_version": jax.__version__, "time": time.strftime("%Y-%m-%dT%H:%M:%S")}
     with open(path, "w") as f:
-        json.dump({**meta, **payload}, f, indent=1, default=_json_default)
+        f.write(jsonio.dumps({**meta, **payload}, indent=1))
         f.write("\n")
     return path
-
-
-def _json_default(o):
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o)}")
 
 
 def report_rows(name: str, argv, args, rows: list[dict], table: str, **extra) -> dict:

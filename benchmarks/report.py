@@ -9,10 +9,10 @@ inserted after the heading, for the figures that need prose (the ratios quoted i
 from __future__ import annotations
 
 import argparse
-import json
 import os
 
 from benchmarks.common import RESULTS_DIR, device_kind
+from hipolicy_jax import jsonio
 
 SECTIONS = (("sampling", "One-call N-sample latency (the paper's sample-times table)"),
             ("optimisation", "Sampler optimisations, before / after (interleaved, one run)"),
@@ -32,7 +32,7 @@ def render(device: str, notes: str = "", results_dir: str = RESULTS_DIR) -> str:
         if not os.path.exists(path):
             continue
         with open(path) as f:
-            res = json.load(f)
+            res = jsonio.loads(f.read())
         out += [f"### {title}", "", f"`{res['command'].strip()}` on {res['device_description']} "
                 f"(jax {res['jax_version']}, {res['time']})", ""]
         if name == "sampling":

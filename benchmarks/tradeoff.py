@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import os
 import shlex
@@ -62,6 +61,7 @@ import numpy as np
 
 from benchmarks.common import (RESULTS_DIR, base_parser, device_kind, latency_stats, markdown_table, precision_context,
                                report_rows, timed_calls, write_results)
+from hipolicy_jax import jsonio
 from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.evaluation import calibration, eval_summary
 from hipolicy_jax.heads import make_head
@@ -533,7 +533,7 @@ def main(argv=None) -> dict:
     old = {}
     if not args.fresh and os.path.exists(path):
         with open(path) as f:
-            old = json.load(f)
+            old = jsonio.loads(f.read())
     rows = {row_key(r): r for r in old.get("rows", [])}
     references: dict = dict(old.get("references", {}))
     extra = {"note": recalibration_note(args), "percentiles": list(args.percentiles), "references": references}

@@ -18,10 +18,10 @@ Exit status: 0 on success, 1 on invalid data, 2 on bad arguments.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 
+from hipolicy_jax import jsonio
 from hipolicy_jax.config import ChunkConfig
 from hipolicy_jax.data.importers import FORMATS, ImportSummary, import_dataset, parse_key_map
 from hipolicy_jax.data.validation import DataValidationError
@@ -68,7 +68,7 @@ def main(argv=None) -> ImportSummary:
     print(summary.format())
     if args.summary_json:
         with open(args.summary_json, "w") as fh:
-            json.dump(summary.to_dict(), fh, indent=2)
+            fh.write(jsonio.dumps(summary.to_dict(), indent=2) + "\n")
     if args.dry_run:
         print("dry run: nothing written")
     else:

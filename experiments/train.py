@@ -12,10 +12,20 @@ from __future__ import annotations
 
 import tyro
 
+import sys
+
+from hipolicy_jax import parallel
+from hipolicy_jax.runs.lock import RunLockedError
 from hipolicy_jax.runs.train import RunConfig, main
+from hipolicy_jax.trainer import CheckpointWriteError, TrainingInterrupted
 
 if __name__ == "__main__":
+    parallel.initialize_distributed()  # multi-process training when the launcher set JAX_COORDINATOR_ADDRESS
     try:
         main(tyro.cli(RunConfig, description=__doc__))
-    except (ValueError, FileNotFoundError, FileExistsError, FloatingPointError) as e:
+    except TrainingInterrupted as e:
+        print(f"interrupted by {e}", file=sys.stderr)
+        raise SystemExit(128 + e.signum)
+    except (ValueError, FileNotFoundError, FileExistsError, FloatingPointError, RunLockedError,
+            CheckpointWriteError) as e:
         raise SystemExit(f"error: {e}")

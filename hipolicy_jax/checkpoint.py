@@ -103,21 +103,32 @@ def load_policy(directory: str, step: int | None = None) -> LoadedPolicy:
     from hipolicy_jax.training import init_train_state, make_optimizer
     from hipolicy_jax.config import TrainConfig
 
+    if not os.path.isdir(directory):
+        raise FileNotFoundError(f"checkpoint: {directory} does not exist")
     with Checkpointer(directory) as ckpt:
-        step = ckpt.latest_step() if step is None else step
+        steps = ckpt.all_steps()
         if step is None:
-            raise FileNotFoundError(f"no complete checkpoint under {directory}")
-        meta = ckpt.restore_meta(step)
-        cfg = config_from_dict(PolicyConfig, meta["policy"])
-        train_cfg = config_from_dict(TrainConfig, meta["train"])
-        action_dim = int(meta["action_dim"])
-        example_obs = {k: np.zeros((1, cfg.chunk.num_freqs, cfg.chunk.obs_horizon, *s), np.float32)
-                       for k, s in meta["obs_shapes"].items()}
-        net = PolicyNet(cfg, action_dim)
-        tx = make_optimizer(train_cfg)
-        abstract = jax.eval_shape(
-            lambda: init_train_state(init_policy_params(cfg, action_dim, example_obs, jax.random.key(0)), tx))
-        state, norm, meta = ckpt.restore(step, abstract)
+            step = ckpt.latest_step()
+        elif step not in steps:
+            raise FileNotFoundError(f"checkpoint: no step {step} under {directory} (steps: {sorted(steps)})")
+        if step is None:
+            raise FileNotFoundError(f"checkpoint: no complete checkpoint under {directory}")
+        try:
+            meta = ckpt.restore_meta(step)
+            cfg = config_from_dict(PolicyConfig, meta["policy"])
+            train_cfg = config_from_dict(TrainConfig, meta["train"])
+            action_dim = int(meta["action_dim"])
+            example_obs = {k: np.zeros((1, cfg.chunk.num_freqs, cfg.chunk.obs_horizon, *s), np.float32)
+                           for k, s in meta["obs_shapes"].items()}
+            net = PolicyNet(cfg, action_dim)
+            tx = make_optimizer(train_cfg)
+            abstract = jax.eval_shape(
+                lambda: init_train_state(init_policy_params(cfg, action_dim, example_obs, jax.random.key(0)), tx))
+            state, norm, meta = ckpt.restore(step, abstract)
+        except Exception as e:  # noqa: BLE001 - any read failure: one line naming the checkpoint
+            raise ValueError(f"checkpoint: {os.path.join(directory, str(step))} is unreadable "
+                             f"({type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''}); pass "
+                             f"another --step or re-train") from e
     return LoadedPolicy(cfg, net, state.ema_params, Normalizer.from_dict(norm), meta, int(step))
 
 

@@ -21,6 +21,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
+import threading
 import time
 from typing import Callable, NamedTuple
 
@@ -28,11 +30,44 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
+from hipolicy_jax import jsonio
 from hipolicy_jax.checkpoint import Checkpointer, config_from_dict, config_to_dict
 from hipolicy_jax.config import PolicyConfig, TrainConfig
 from hipolicy_jax.models.policy_net import PolicyNet, init_policy_params, param_count
 from hipolicy_jax import parallel
 from hipolicy_jax.training import TrainState, init_train_state, make_optimizer, make_train_step
+
+
+class TrainingInterrupted(Exception):
+    """SIGINT / SIGTERM stopped training after a complete step whose checkpoint was written: rerunning resumes."""
+
+    def __init__(self, signum: int, step: int, ckpt_dir: str):
+        self.signum, self.step, self.ckpt_dir = signum, step, ckpt_dir
+        name = signal.Signals(signum).name
+        super().__init__(f"{name}: stopped after step {step}, checkpoint written to {ckpt_dir}; rerun the same "
+                         f"command to resume")
+
+
+class CheckpointWriteError(OSError):
+    """A checkpoint could not be written (disk full, permissions, ...); the last committed one is intact."""
+
+
+def _write_error(ckpt_dir: str, error: BaseException, last_step: int | None) -> BaseException:
+    """A one-line ``CheckpointWriteError`` for an OS-level failure anywhere in ``error``'s chain, else ``error``."""
+    cause = error
+    while cause is not None and not isinstance(cause, OSError):
+        cause = cause.__cause__ or cause.__context__
+    if cause is None:
+        return error
+    try:
+        free = f"{shutil.disk_usage(ckpt_dir).free / 2**20:.0f} MiB free"
+    except OSError:
+        free = "free space unknown"
+    kept = f"the last committed checkpoint (step {last_step}) is intact" if last_step is not None else \
+        "no checkpoint was committed yet"
+    reason = cause.strerror or str(cause).splitlines()[0][:200]
+    return CheckpointWriteError(cause.errno, f"writing a checkpoint to {ckpt_dir} failed ({reason}; {free}); "
+                                             f"{kept}: free space and rerun the same command to resume")
 
 
 class FitResult(NamedTuple):
@@ -122,7 +157,7 @@ class _Logger:
             self._tb = SummaryWriter(os.path.join(out_dir, "tb"))
 
     def log(self, step: int, kind: str, values: dict):
-        self._jsonl.write(json.dumps({"step": step, "kind": kind, **values}) + "\n")
+        self._jsonl.write(jsonio.dumps({"step": step, "kind": kind, **values}) + "\n")
         self._jsonl.flush()
         if self._tb is not None:
             for k, v in values.items():
@@ -183,6 +218,48 @@ def fit(cfg: PolicyConfig, train_cfg: TrainConfig, dataset, out_dir: str, *,
     bar = tqdm(total=train_cfg.num_steps, initial=start, disable=not progress, desc="train", unit="step",
                dynamic_ncols=True)
     t_last, n_last = time.perf_counter(), start
+    stop: dict = {"signum": None}
+
+    def on_signal(signum, frame):
+        if stop["signum"] is not None:  # a second signal: stop at once
+            raise KeyboardInterrupt
+        stop["signum"] = signum
+
+    handlers = {}
+    if threading.current_thread() is threading.main_thread():
+        handlers = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def flush(done: int):
+        nonlocal pending, t_last, n_last
+        host = jax.device_get(pending)
+        pending = []
+        bad = [m for m in host if not m["finite"]]
+        if bad:
+            raise FloatingPointError(
+                f"non-finite loss or gradient at step ~{done} (loss={bad[0]['loss']}, grad_norm="
+                f"{bad[0]['grad_norm']}); the update was skipped and the last checkpoint is intact. "
+                f"Try a lower train.lr, train.grad_clip, or check the data for outliers")
+        losses.extend(float(m["loss"]) for m in host)
+        now = time.perf_counter()
+        sps = (done - n_last) / max(now - t_last, 1e-9)
+        t_last, n_last = now, done
+        row = {"loss": float(np.mean([m["loss"] for m in host])),
+               "grad_norm": float(np.mean([m["grad_norm"] for m in host])), "lr": float(host[-1]["lr"]),
+               "steps_per_s": sps}
+        logger.log(done, "train", row)
+        bar.set_postfix(loss=f"{row['loss']:.4f}", lr=f"{row['lr']:.1e}", sps=f"{sps:.1f}")
+        bar.update(done - bar.n)
+
+    def save(done: int | None, force: bool = False, wait: bool = False):
+        """Save step ``done`` (None: only wait for the writes in flight); OS-level failures become one line."""
+        try:
+            if done is not None:
+                ckpt.save(done, state, dataset.normalizer, meta, force=force)
+            if wait:
+                ckpt.wait()
+        except Exception as e:  # noqa: BLE001 - the rest propagate unchanged from _write_error
+            raise _write_error(ckpt_dir, e, ckpt.latest_step()) from e
+
     try:
         for step in range(start, end):
             batch = dataset.get_batch(dataset.batch_indices(keys["data"], step, train_cfg.batch_size))
@@ -190,33 +267,25 @@ def fit(cfg: PolicyConfig, train_cfg: TrainConfig, dataset, out_dir: str, *,
             state, metrics = train_step(state, batch, keys["noise"])
             pending.append(metrics)
             done = step + 1
-            if done % train_cfg.log_every == 0 or done == end:
-                host = jax.device_get(pending)
-                pending = []
-                bad = [m for m in host if not m["finite"]]
-                if bad:
-                    raise FloatingPointError(
-                        f"non-finite loss or gradient at step ~{done} (loss={bad[0]['loss']}, grad_norm="
-                        f"{bad[0]['grad_norm']}); the update was skipped and the last checkpoint is intact. "
-                        f"Try a lower train.lr, train.grad_clip, or check the data for outliers")
-                losses.extend(float(m["loss"]) for m in host)
-                now = time.perf_counter()
-                sps = (done - n_last) / max(now - t_last, 1e-9)
-                t_last, n_last = now, done
-                row = {"loss": float(np.mean([m["loss"] for m in host])),
-                       "grad_norm": float(np.mean([m["grad_norm"] for m in host])),
-                       "lr": float(host[-1]["lr"]), "steps_per_s": sps}
-                logger.log(done, "train", row)
-                bar.set_postfix(loss=f"{row['loss']:.4f}", lr=f"{row['lr']:.1e}", sps=f"{sps:.1f}")
-                bar.update(done - bar.n)
-            ckpt.save(done, state, dataset.normalizer, meta, force=(done == train_cfg.num_steps))
+            if done % train_cfg.log_every == 0 or done == end or stop["signum"] is not None:
+                flush(done)
+            if stop["signum"] is not None:
+                save(done, force=True, wait=True)
+                raise TrainingInterrupted(stop["signum"], done, ckpt_dir)
+            save(done, force=(done == train_cfg.num_steps))
             if eval_fn is not None and eval_every and done % eval_every == 0 and done < train_cfg.num_steps:
                 logger.log(done, "eval", eval_fn(state, done))
         if eval_fn is not None and end == train_cfg.num_steps:
             logger.log(end, "eval", eval_fn(state, end))
+        save(None, wait=True)
     finally:
+        for sig, old in handlers.items():
+            signal.signal(sig, old)
         bar.close()
-        ckpt.wait()
+        try:
+            ckpt.wait()
+        except Exception:  # noqa: BLE001 - already reported by save(); do not hide the exception in flight
+            pass
         ckpt.close()
         logger.close()
     return FitResult(state, net, losses, start, meta)

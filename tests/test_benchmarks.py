@@ -8,13 +8,16 @@ import math
 
 import pytest
 
+from hipolicy_jax import jsonio
 from benchmarks import convolutions, optimisation, rollout, sampling, tradeoff, train_step
 
 
 def _load(out_dir, name):
     files = list(out_dir.glob(f"{name}_*.json"))
     assert len(files) == 1, files
-    return json.loads(files[0].read_text())
+    text = files[0].read_text()
+    json.loads(text, parse_constant=lambda c: pytest.fail(f"non-standard JSON constant {c}"))  # strict JSON
+    return jsonio.loads(text)
 
 
 def _finite(row, keys):

@@ -5,6 +5,7 @@ import json
 import math
 
 import numpy as np
+import pytest
 from helpers import xla_compiles
 
 from hipolicy_jax.config import EvalConfig, InferenceConfig, ModelConfig, PolicyConfig, TrainConfig
@@ -29,7 +30,12 @@ def test_train_calibrate_evaluate_tiny(tmp_path):
     fracs = [v for k, v in summary["eval"].items() if k.startswith("stride")]
     assert math.isclose(sum(fracs), 1.0, rel_tol=1e-6)
 
-    rows = [json.loads(x) for x in open(tmp_path / "run" / "metrics.jsonl")]
+    def strict(text):  # every file the run wrote is standard JSON (no NaN / Infinity constants)
+        return json.loads(text, parse_constant=lambda c: pytest.fail(f"non-standard JSON constant {c}"))
+
+    for path in (tmp_path / "run").glob("*.json"):
+        strict(path.read_text())
+    rows = [strict(x) for x in open(tmp_path / "run" / "metrics.jsonl")]
     assert [r["step"] for r in rows if r["kind"] == "eval"] == [6, 12]
     assert all(np.isfinite(r["loss"]) for r in rows if r["kind"] == "train")
     assert (tmp_path / "run" / "calibration.json").exists() and (tmp_path / "run" / "summary.json").exists()

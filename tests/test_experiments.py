@@ -18,7 +18,7 @@ import tyro
 from hipolicy_jax.config import InferenceConfig
 
 from experiments import calibrate, evaluate, paper
-from hipolicy_jax import envs
+from hipolicy_jax import envs, jsonio
 from hipolicy_jax.runs.budgets import variant_name
 from hipolicy_jax.runs.campaign import Campaign, Column, choose_low_regime, pilot_candidates
 from hipolicy_jax.runs.cli import parse_with_run_inference
@@ -43,14 +43,19 @@ def tiny(tmp_path_factory):
 
 
 def _load(path):
+    """A JSON file the project wrote, parsed strictly (NaN / Infinity constants fail the test), ±∞ strings read back
+    as floats."""
+    def reject(constant):
+        raise AssertionError(f"{path}: non-standard JSON constant {constant}")
+
     with open(path) as f:
-        return json.load(f)
+        return jsonio.from_strict(json.loads(f.read(), parse_constant=reject))
 
 
 def _check_summary(s: dict, max_steps: int):
     assert 0.0 <= s["success_rate"] <= 1.0
     assert 1 <= s["mean_steps"] <= max_steps
-    assert math.isnan(s["mean_steps_success"]) or 1 <= s["mean_steps_success"] <= max_steps
+    assert s["mean_steps_success"] is None or 1 <= s["mean_steps_success"] <= max_steps  # None: no success (NaN)
     fracs = [v for k, v in s.items() if k.startswith("stride") and k.endswith("_frac")]
     assert all(0.0 <= f <= 1.0 for f in fracs) and math.isclose(sum(fracs), 1.0, rel_tol=1e-6)
     assert len(s["success"]) == len(s["steps"]) and all(1 <= x <= max_steps for x in s["steps"])

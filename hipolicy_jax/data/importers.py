@@ -283,8 +283,8 @@ def import_dp_zarr(src: str | os.PathLike, key_map: KeyMap | None = None,
     src = os.fspath(src)
     if not os.path.exists(src):
         raise FileNotFoundError(f"{src}: no such Diffusion Policy zarr dataset")
-    store = zarr.storage.ZipStore(src, mode="r") if os.path.isfile(src) else src
     try:
+        store = zarr.storage.ZipStore(src, mode="r") if os.path.isfile(src) else src
         root = zarr.open_group(store, mode="r")
     except Exception as e:
         raise DataValidationError(f"{src}: not a zarr group ({type(e).__name__}: {e}); expected a Diffusion Policy "
@@ -345,7 +345,12 @@ def import_robomimic(src: str | os.PathLike, key_map: KeyMap | None = None,
     src = os.fspath(src)
     if not os.path.exists(src):
         raise FileNotFoundError(f"{src}: no such robomimic hdf5 file")
-    with h5py.File(src, "r") as f:
+    try:
+        f = h5py.File(src, "r")
+    except OSError as e:
+        raise DataValidationError(f"{src}: not a readable HDF5 file ({e}); expected a robomimic dataset with "
+                                  f"'data/demo_<i>/obs/<key>' and 'data/demo_<i>/actions'") from e
+    with f:
         if "data" not in f:
             raise DataValidationError(f"{src}: missing group 'data'; expected 'data/demo_<i>/obs/<key>' and "
                                       f"'data/demo_<i>/actions'")

@@ -30,6 +30,8 @@ t)`` is the action at (possibly fractional) control step t. Plans are pure array
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 from typing import Any
 
@@ -38,7 +40,10 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from flax import struct
-from mujoco import mjx
+# mujoco.mjx prints "Failed to import warp / mujoco_warp" when its optional GPU backend (NVIDIA Warp) is absent;
+# this project never uses that backend, so the import runs with stdout silenced
+with contextlib.redirect_stdout(io.StringIO()):
+    from mujoco import mjx
 
 ASSETS_DIR = os.path.join(os.path.dirname(__file__), "assets")
 

@@ -127,6 +127,17 @@ def check_buffer(buffer: ReplayBuffer, encoder: EncoderConfig, path: str) -> Non
                              f"--data (a missing one is collected with the encoder's camera)")
 
 
+def check_buffer_fits_env(buffer: ReplayBuffer, env, path: str) -> None:
+    """Raise ``ValueError`` naming the key, the buffer's and the env's per-frame shape when the demos' actions or
+    observations do not fit the env the run will be evaluated in (e.g. 7-dim actions for a 4-dim task)."""
+    expected = {"action": (env.action_dim,), **{k: tuple(v) for k, v in env.obs_shapes.items()}}
+    for key, shape in expected.items():
+        if key in buffer.data and tuple(buffer.data[key].shape[1:]) != shape:
+            raise ValueError(f"{path}: data/{key} has frames of shape {tuple(buffer.data[key].shape[1:])}, the "
+                             f"{env.name} task expects {shape}; these demos are not of this task "
+                             f"(pass its --task or other --data)")
+
+
 def load_or_collect(task: str, encoder: EncoderConfig, episodes: int, path: str, seed: int = 0,
                     progress: bool = True) -> ReplayBuffer:
     """Reuse the dataset at ``path`` (checked against ``encoder``: keys and frame shapes) or collect ``episodes``

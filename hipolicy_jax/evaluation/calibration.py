@@ -15,7 +15,6 @@ Everything about thresholds lives here, once:
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
 from typing import Callable, Sequence
@@ -23,6 +22,7 @@ from typing import Callable, Sequence
 import jax
 import numpy as np
 
+from hipolicy_jax import jsonio
 from hipolicy_jax.config import InferenceConfig
 
 CALIBRATION_FILE = "calibration.json"
@@ -137,10 +137,7 @@ def calibration_record(entropies: np.ndarray, thresholds: Sequence[float], num_f
 
 def write_calibration(record: dict, path: str) -> str:
     """Write a calibration record (``calibration_record``) to ``path``."""
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    with open(path, "w") as f:
-        json.dump(record, f, indent=2)
-    return path
+    return jsonio.dump(record, path)
 
 
 def read_calibration(run_dir: str) -> dict | None:
@@ -148,5 +145,4 @@ def read_calibration(run_dir: str) -> dict | None:
     path = os.path.join(run_dir, CALIBRATION_FILE)
     if not os.path.exists(path):
         return None
-    with open(path) as f:
-        return json.load(f)
+    return jsonio.load(path)

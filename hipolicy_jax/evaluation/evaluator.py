@@ -38,7 +38,7 @@ class Evaluator:
                  inference: InferenceConfig = InferenceConfig(), *, max_steps: int | None = None):
         self.cfg, self.action_dim, self.inference = cfg, action_dim, inference
         self.env = envs_lib.make_for_encoder(task, cfg.encoder) if isinstance(task, str) else task
-        self.task = task if isinstance(task, str) else type(task).__name__
+        self.task = task if isinstance(task, str) else task.name
         if self.env.action_dim != action_dim:
             raise ValueError(f"action_dim: the policy predicts {action_dim}-dim actions, the {self.task} env takes "
                              f"{self.env.action_dim}")

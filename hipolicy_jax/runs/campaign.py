@@ -22,6 +22,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from hipolicy_jax import jsonio
 from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.evaluation import calibration
 from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
@@ -138,6 +139,7 @@ class Campaign:
                       "success": [bool(x) for x in np.asarray(result.success)],
                       "steps": [int(x) for x in np.asarray(result.steps)],
                       "decisions": [int(x) for x in valid.sum(axis=1)], "eval_s": time.perf_counter() - t0}
+        evaluation = jsonio.loads(jsonio.dumps(evaluation))  # as records hold it (NaN: None), fresh or reread
         record = {"version": RECORD_VERSION, "budget": self.budget, "run_dir": os.path.relpath(run.run_dir),
                   **run_summary(run), "evaluations": {**record.get("evaluations", {}), key: evaluation}}
         write_json(path, record)

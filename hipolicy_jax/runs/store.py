@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import os
 from typing import NamedTuple
 
 import jax
 import numpy as np
 
+from hipolicy_jax import jsonio
 from hipolicy_jax.checkpoint import LoadedPolicy, config_from_dict, load_policy
 from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.data.dataset import SequenceDataset, train_heldout_datasets
@@ -35,15 +35,12 @@ def eval_key(seed: int) -> jax.Array:
 
 
 def write_json(path: str, obj) -> str:
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    with open(path, "w") as f:
-        json.dump(obj, f, indent=2, default=float)
-    return path
+    """Strict JSON (``jsonio``: NaN as null, ±∞ as strings)."""
+    return jsonio.dump(obj, path)
 
 
 def read_json(path: str):
-    with open(path) as f:
-        return json.load(f)
+    return jsonio.load(path)
 
 
 def write_inference(run_dir: str, inference: InferenceConfig) -> str:
@@ -78,6 +75,9 @@ class Run(NamedTuple):
 def resolve_run(path: str) -> tuple[str, str]:
     """(run_dir, checkpoint_dir) from a train output dir (holding ``checkpoints/``) or the checkpoints dir itself."""
     path = os.path.abspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"checkpoint: {path} does not exist; expected a run directory (holding "
+                                f"checkpoints/) or its checkpoints/ directory")
     if os.path.isdir(os.path.join(path, "checkpoints")):
         return path, os.path.join(path, "checkpoints")
     if os.path.isdir(path) and any(d.isdigit() for d in os.listdir(path)):

@@ -20,11 +20,13 @@ import numpy as np
 
 from hipolicy_jax.config import (ChunkConfig, EvalConfig, InferenceConfig, ModelConfig, PolicyConfig, TrainConfig,
                                  replace)
+from hipolicy_jax import envs
 from hipolicy_jax.data.dataset import train_heldout_datasets
 from hipolicy_jax.envs.base import PROPRIO_DIM
-from hipolicy_jax.envs.demos import check_buffer, default_data_path, load_or_collect
+from hipolicy_jax.envs.demos import check_buffer, check_buffer_fits_env, default_data_path, load_or_collect
 from hipolicy_jax.evaluation import calibration
 from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
+from hipolicy_jax.runs.lock import RunLock
 from hipolicy_jax.runs.store import Run, eval_key, load_run, read_json, write_inference, write_json
 from hipolicy_jax.trainer import fit, run_keys
 
@@ -58,6 +60,8 @@ class RunConfig:
     # they read proprioception only (policy.encoder.state_dims = 4, as DP / DP3), unless state_dims is set
 
     def __post_init__(self):
+        if self.task not in envs.TASKS:
+            raise ValueError(f"task: must be one of {list(envs.TASKS)}, got {self.task!r}")
         enc = self.policy.encoder
         if enc.obs_type != "state" and enc.state_dims is None and not self.privileged_state:
             object.__setattr__(self, "policy", replace(self.policy, **{"encoder.state_dims": PROPRIO_DIM}))
@@ -85,6 +89,7 @@ def dry_run(cfg: RunConfig) -> dict:
         return info
     buffer = ReplayBuffer.load(path)
     check_buffer(buffer, cfg.policy.encoder, path)
+    check_buffer_fits_env(buffer, envs.make_for_encoder(cfg.task, cfg.policy.encoder), path)
     train_ds, val_ds = train_heldout_datasets(buffer, cfg.policy.chunk, cfg.policy.encoder.obs_keys, cfg.val_ratio,
                                               cfg.train.seed)
     if len(train_ds) < cfg.train.batch_size:
@@ -101,13 +106,35 @@ def dry_run(cfg: RunConfig) -> dict:
     return info
 
 
+def prepare_out_dir(out: str) -> str:
+    """Create the run directory; a path that is a file or not writable is a one-line ``ValueError``."""
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise ValueError(f"out: {out} is a file; pass a directory for the run (--out)")
+    try:
+        os.makedirs(out, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"out: cannot create the run directory {out} ({e.strerror}); pass another --out") from e
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise ValueError(f"out: the run directory {out} is not writable; pass another --out")
+    return out
+
+
 def train(cfg: RunConfig) -> dict:
-    """Train (or resume) the run, calibrate its thresholds, evaluate it; → the summary written to summary.json."""
-    out = cfg.out_dir()
-    os.makedirs(out, exist_ok=True)
+    """Train (or resume) the run, calibrate its thresholds, evaluate it; → the summary written to summary.json.
+
+    The run directory is locked while this runs (``lock.RunLock``: a second training on it refuses). SIGINT /
+    SIGTERM stop after the current step with a checkpoint written (``trainer.TrainingInterrupted``)."""
+    out = prepare_out_dir(cfg.out_dir())
+    with RunLock(out):
+        return _train(cfg, out)
+
+
+def _train(cfg: RunConfig, out: str) -> dict:
     t0 = time.perf_counter()
     buffer = load_or_collect(cfg.task, cfg.policy.encoder, cfg.episodes, cfg.data_path(), seed=cfg.demo_seed,
                              progress=cfg.progress)
+    env = envs.make_for_encoder(cfg.task, cfg.policy.encoder)
+    check_buffer_fits_env(buffer, env, cfg.data_path())  # before any training: the run is evaluated in this env
     policy = cfg.policy
     train_ds, val_ds = train_heldout_datasets(buffer, policy.chunk, policy.encoder.obs_keys, cfg.val_ratio,
                                               cfg.train.seed)
@@ -115,7 +142,7 @@ def train(cfg: RunConfig) -> dict:
           f"{len(val_ds)} held-out windows")
     keys = run_keys(cfg.train.seed)
     action_dim = int(buffer.data["action"].shape[-1])
-    evaluator = Evaluator(cfg.task, policy, action_dim, cfg.inference)
+    evaluator = Evaluator(env, policy, action_dim, cfg.inference)
     write_inference(out, cfg.inference)
     last: dict = {}  # the latest in-training evaluation, reused when it ran on the final state
 

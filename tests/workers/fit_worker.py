@@ -16,7 +16,7 @@ from test_training import bimodal_buffer, tiny_cfg  # noqa: E402
 
 from hipolicy_jax.config import TrainConfig  # noqa: E402
 from hipolicy_jax.data.dataset import SequenceDataset  # noqa: E402
-from hipolicy_jax.trainer import fit  # noqa: E402
+from hipolicy_jax.trainer import TrainingInterrupted, fit  # noqa: E402
 
 
 class SlowDataset:
@@ -48,7 +48,11 @@ def main():
     if a.sleep:
         ds = SlowDataset(ds, a.sleep)
     train_cfg = TrainConfig(batch_size=a.batch, num_steps=a.steps, warmup_steps=2, log_every=1, ckpt_every=4)
-    res = fit(tiny_cfg(), train_cfg, ds, a.out, progress=False, tensorboard=False, num_devices=a.devices)
+    try:  # as experiments.train: an interrupt ends the process with 128 + the signal number
+        res = fit(tiny_cfg(), train_cfg, ds, a.out, progress=False, tensorboard=False, num_devices=a.devices)
+    except TrainingInterrupted as e:
+        print(f"interrupted by {e}", file=sys.stderr, flush=True)
+        sys.exit(128 + e.signum)
     print(json.dumps({"start": res.start_step, "losses": res.losses, "devices": res.meta["num_devices"]}), flush=True)
 
 

@@ -1,0 +1,88 @@
+"""One owner per run directory: ``RunLock`` holds ``<run>/.lock`` (pid, host, start time) while a training runs.
+
+A second training on the same directory refuses with the owner's pid and host. A lock whose owner is gone — the
+same host and no live process with that pid (a run killed with ``kill -9``) — is reported and taken over. A lock
+from another host cannot be checked from here; it is refused, naming the file to delete if that run is gone.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import time
+
+LOCK_FILE = ".lock"
+
+
+class RunLockedError(RuntimeError):
+    """The run directory is owned by another live training."""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by another user
+        return True
+    return True
+
+
+class RunLock:
+    """Context manager owning ``<directory>/.lock`` for this process; released on exit (also on errors)."""
+
+    def __init__(self, directory: str):
+        self.path = os.path.join(directory, LOCK_FILE)
+        self.owner = {"pid": os.getpid(), "host": socket.gethostname()}
+
+    def _create(self) -> bool:
+        try:
+            fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            return False
+        with os.fdopen(fd, "w") as f:
+            json.dump({**self.owner, "started": time.strftime("%Y-%m-%dT%H:%M:%S")}, f)
+        return True
+
+    def _read(self) -> dict:
+        try:
+            with open(self.path) as f:
+                return json.load(f)
+        except (OSError, ValueError):
+            return {}
+
+    def acquire(self) -> "RunLock":
+        for _ in range(3):  # a stale lock is removed and the creation retried; a racing owner wins fairly
+            if self._create():
+                return self
+            held = self._read()
+            pid, host = held.get("pid"), held.get("host")
+            if host == self.owner["host"] and isinstance(pid, int) and pid != os.getpid() and _alive(pid):
+                raise RunLockedError(f"{os.path.dirname(self.path)} is in use by another training (pid {pid} on "
+                                     f"{host}, since {held.get('started', '?')}); wait for it or pass another --out")
+            if host not in (None, self.owner["host"]):
+                raise RunLockedError(f"{os.path.dirname(self.path)} is in use by a training on host {host} (pid "
+                                     f"{pid}); if that run is gone, delete {self.path}")
+            print(f"[lock] taking over {self.path}: its owner (pid {pid} on {host}) is gone", flush=True)
+            try:
+                os.remove(self.path)
+            except FileNotFoundError:
+                pass
+        raise RunLockedError(f"could not take {self.path}; another training keeps creating it")
+
+    def release(self) -> None:
+        if self._read().get("pid") == self.owner["pid"]:
+            try:
+                os.remove(self.path)
+            except FileNotFoundError:
+                pass
+
+    def __enter__(self) -> "RunLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+__all__ = ["LOCK_FILE", "RunLock", "RunLockedError"]

@@ -1,0 +1,147 @@
+"""Faults and bad input: one-line errors naming the path or field, a lock per run directory, interrupts that
+checkpoint and resume exactly, checkpoint write failures that keep the last committed checkpoint."""
+
+import errno
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from test_training import bimodal_buffer, tiny_cfg
+
+from hipolicy_jax import checkpoint
+from hipolicy_jax.config import TrainConfig
+from hipolicy_jax.data.dataset import SequenceDataset
+from hipolicy_jax.data.replay_buffer import ReplayBuffer
+from hipolicy_jax.envs import make
+from hipolicy_jax.envs.demos import check_buffer_fits_env
+from hipolicy_jax.runs.lock import RunLock, RunLockedError
+from hipolicy_jax.runs.store import load_run
+from hipolicy_jax.runs.train import RunConfig, prepare_out_dir
+from hipolicy_jax.trainer import CheckpointWriteError, fit
+
+WORKER = os.path.join(os.path.dirname(__file__), "workers", "fit_worker.py")
+TRAIN = TrainConfig(batch_size=16, num_steps=12, warmup_steps=2, log_every=1, ckpt_every=4)
+
+
+@pytest.fixture(scope="module")
+def dataset():
+    return SequenceDataset(bimodal_buffer(), tiny_cfg().chunk, obs_keys=("state",))
+
+
+def _losses(out) -> dict[int, float]:
+    rows = [json.loads(x) for x in open(os.path.join(out, "metrics.jsonl"))]
+    return {r["step"]: r["loss"] for r in rows if r["kind"] == "train"}
+
+
+def test_bad_paths_and_fields_name_themselves(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"checkpoint: .*/missing does not exist"):
+        load_run(str(tmp_path / "missing"))
+    (tmp_path / "empty" / "checkpoints").mkdir(parents=True)
+    with pytest.raises(FileNotFoundError, match="checkpoint: no complete checkpoint under .*empty/checkpoints"):
+        load_run(str(tmp_path / "empty"))
+    with pytest.raises(ValueError, match=r"task: must be one of \['press_button'"):
+        RunConfig(task="no_such_task")
+    (tmp_path / "a_file").write_text("x")
+    with pytest.raises(ValueError, match=r"out: .*a_file is a file"):
+        prepare_out_dir(str(tmp_path / "a_file"))
+    with pytest.raises(ValueError, match=r"out: cannot create the run directory .*a_file/run"):
+        prepare_out_dir(str(tmp_path / "a_file" / "run"))
+
+
+def test_demos_of_another_task_are_refused_before_training():
+    env = make("press_button")
+    ep = {"state": np.zeros((30, env.state_dim), np.float32), "action": np.zeros((30, 7), np.float32)}
+    with pytest.raises(ValueError, match=r"d.zarr: data/action has frames of shape \(7,\), the press_button task "
+                                         r"expects \(4,\)"):
+        check_buffer_fits_env(ReplayBuffer.from_episodes([ep]), env, "d.zarr")
+    ep = {"state": np.zeros((30, 3), np.float32), "action": np.zeros((30, 4), np.float32)}
+    with pytest.raises(ValueError, match=r"data/state has frames of shape \(3,\)"):
+        check_buffer_fits_env(ReplayBuffer.from_episodes([ep]), env, "d.zarr")
+
+
+def test_corrupt_checkpoint_is_one_line(dataset, tmp_path):
+    fit(tiny_cfg(), TrainConfig(batch_size=16, num_steps=2, warmup_steps=1, ckpt_every=2), dataset, str(tmp_path),
+        progress=False, tensorboard=False)
+    for root, _, files in os.walk(tmp_path / "checkpoints" / "2" / "state"):
+        for f in files:
+            if f not in ("_METADATA", "_CHECKPOINT_METADATA", "manifest.ocdbt"):
+                with open(os.path.join(root, f), "r+b") as fh:
+                    fh.truncate(os.path.getsize(os.path.join(root, f)) // 3)
+    with pytest.raises(ValueError, match=r"checkpoint: .*checkpoints/2 is unreadable \(.*\); pass another --step"):
+        checkpoint.load_policy(str(tmp_path / "checkpoints"))
+    with pytest.raises(FileNotFoundError, match=r"no step 7 under .*\(steps: \[.*2\]\)"):
+        checkpoint.load_policy(str(tmp_path / "checkpoints"), 7)
+
+
+def test_one_owner_per_run_directory(tmp_path):
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (tmp_path / ".lock").write_text(json.dumps({"pid": sleeper.pid, "host": os.uname().nodename,
+                                                    "started": "2026-12-01T00:00:00"}))
+        with pytest.raises(RunLockedError, match=rf"in use by another training \(pid {sleeper.pid} on "):
+            RunLock(str(tmp_path)).acquire()
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+    with RunLock(str(tmp_path)) as lock:  # the owner is gone (as after kill -9): taken over
+        assert json.loads((tmp_path / ".lock").read_text())["pid"] == os.getpid() == lock.owner["pid"]
+        other = RunLock(str(tmp_path))
+        other.owner = {"pid": os.getpid(), "host": "elsewhere"}
+        with pytest.raises(RunLockedError, match=r"in use by a training on host"):
+            other.acquire()
+    assert not (tmp_path / ".lock").exists()  # released
+
+
+def test_sigterm_checkpoints_the_current_step_and_resume_is_exact(tmp_path):
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    full = subprocess.run([sys.executable, WORKER, str(tmp_path / "full"), "--steps", "16"], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert full.returncode == 0, full.stderr[-2000:]
+    out = tmp_path / "stopped"
+    proc = subprocess.Popen([sys.executable, WORKER, str(out), "--steps", "16", "--sleep", "0.4"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 300
+    while time.time() < deadline:  # wait until step 6 is logged, between two periodic checkpoints (4, 8)
+        if (out / "metrics.jsonl").exists() and len((out / "metrics.jsonl").read_text().splitlines()) >= 6:
+            break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err[-2000:]
+    line = [x for x in err.splitlines() if x.startswith("interrupted by")]
+    assert len(line) == 1 and "SIGTERM: stopped after step" in line[0] and "rerun the same command" in line[0]
+    stopped_at = int(line[0].split("after step ")[1].split(",")[0])
+    assert 6 <= stopped_at < 16 and (out / "checkpoints" / str(stopped_at)).is_dir()
+    again = subprocess.run([sys.executable, WORKER, str(out), "--steps", "16"], env=env, capture_output=True,
+                           text=True, timeout=600)
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert json.loads(again.stdout.strip().splitlines()[-1])["start"] == stopped_at
+    got, want = _losses(out), _losses(tmp_path / "full")
+    assert sorted(got) == list(range(1, 17))
+    np.testing.assert_allclose([got[s] for s in range(1, 17)], [want[s] for s in range(1, 17)], rtol=1e-6)
+
+
+def test_checkpoint_write_failure_is_one_line_and_keeps_the_last_checkpoint(dataset, tmp_path, monkeypatch):
+    full = fit(tiny_cfg(), TRAIN, dataset, str(tmp_path / "full"), progress=False, tensorboard=False)
+    save = checkpoint.Checkpointer.save
+
+    def failing(self, step, *args, **kwargs):
+        if step == 8:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return save(self, step, *args, **kwargs)
+
+    monkeypatch.setattr(checkpoint.Checkpointer, "save", failing)
+    with pytest.raises(CheckpointWriteError) as info:
+        fit(tiny_cfg(), TRAIN, dataset, str(tmp_path / "run"), progress=False, tensorboard=False)
+    msg = str(info.value)
+    assert "\n" not in msg and "No space left on device" in msg and "MiB free" in msg
+    assert f"{tmp_path / 'run' / 'checkpoints'}" in msg and "last committed checkpoint (step 4) is intact" in msg
+    monkeypatch.setattr(checkpoint.Checkpointer, "save", save)
+    res = fit(tiny_cfg(), TRAIN, dataset, str(tmp_path / "run"), progress=False, tensorboard=False)
+    assert res.start_step == 4
+    np.testing.assert_allclose(res.losses, full.losses[4:], rtol=1e-6)
