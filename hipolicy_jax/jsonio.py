@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 from typing import Any
 
 import numpy as np
@@ -57,11 +58,19 @@ def dumps(obj: Any, **kwargs) -> str:
     return json.dumps(to_strict(obj), allow_nan=False, **kwargs)
 
 
+_SCALAR = r'(?:-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?|true|false|null|"-?Infinity")'
+_SCALAR_LIST = re.compile(r"\[\s*(" + _SCALAR + r"(?:,\s*" + _SCALAR + r")*)\s*\]")
+
+
 def dump(obj: Any, path: str, indent: int | None = 2) -> str:
-    """Write ``obj`` as strict JSON to ``path`` (creating its directory); → the path."""
+    """Write ``obj`` as strict JSON to ``path`` (creating its directory), indented, with lists of numbers on one
+    line (per-episode outcomes stay small in git); → the path."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    text = dumps(obj, indent=indent)
+    if indent is not None:
+        text = _SCALAR_LIST.sub(lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]", text)
     with open(path, "w") as f:
-        f.write(dumps(obj, indent=indent) + "\n")
+        f.write(text + "\n")
     return path
 
 
