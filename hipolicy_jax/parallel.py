@@ -20,16 +20,55 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 
 def initialize_distributed() -> bool:
-    """``jax.distributed.initialize()`` when the launcher set the coordinator variables; → whether it did."""
-    if os.environ.get("JAX_COORDINATOR_ADDRESS") and jax.process_count() == 1:
-        jax.distributed.initialize()
-        return True
-    return False
+    """Join a multi-process run when the launcher set ``JAX_COORDINATOR_ADDRESS`` (``host:port`` of process 0),
+    ``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID``; CPU processes exchange gradients over gloo. Must run before
+    anything touches a JAX device. → whether it initialised (False: a single-process run).
+
+    One machine, 2 processes of 2 CPU devices each::
+
+        for i in 0 1; do JAX_COORDINATOR_ADDRESS=127.0.0.1:12355 JAX_NUM_PROCESSES=2 JAX_PROCESS_ID=$i \\
+            JAX_NUM_CPU_DEVICES=2 python -m experiments.train --out runs/mp & done; wait
+    """
+    address = os.environ.get("JAX_COORDINATOR_ADDRESS")
+    if not address or jax.distributed.is_initialized():
+        return False
+    missing = [k for k in ("JAX_NUM_PROCESSES", "JAX_PROCESS_ID") if k not in os.environ]
+    if missing:
+        raise ValueError(f"JAX_COORDINATOR_ADDRESS={address} is set but {', '.join(missing)} is not: set the number "
+                         f"of processes and this process's index (0 .. N-1)")
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")  # CPU all-reduce across processes
+    jax.distributed.initialize(coordinator_address=address, num_processes=int(os.environ["JAX_NUM_PROCESSES"]),
+                               process_id=int(os.environ["JAX_PROCESS_ID"]))
+    return True
 
 
-def make_mesh(num_devices: int | None = None) -> Mesh | None:
-    """A 1-D ``("data",)`` mesh over the first ``num_devices`` devices (default all); None for a single device."""
-    devices = jax.devices()
+def barrier(name: str) -> None:
+    """Wait until every process of a multi-process run got here (no-op in a single process)."""
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices(name)
+
+
+def is_primary() -> bool:
+    """Whether this process writes the run's files (logs, summaries, locks): process 0."""
+    return jax.process_index() == 0
+
+
+def to_host(tree):
+    """NumPy copies of a pytree of (possibly multi-process, replicated) arrays: each process reads its own copy."""
+    def one(x):
+        if isinstance(x, jax.Array) and not x.is_fully_addressable:
+            return np.asarray(x.addressable_data(0))
+        return np.asarray(x)
+
+    return jax.tree.map(one, tree)
+
+
+def make_mesh(num_devices: int | None = None, local: bool = False) -> Mesh | None:
+    """A 1-D ``("data",)`` mesh over the first ``num_devices`` devices (default all, of every process; ``local``:
+    this process's only); None for a single device."""
+    devices = jax.local_devices() if local else jax.devices()
     n = len(devices) if num_devices is None else num_devices
     if not 1 <= n <= len(devices):
         raise ValueError(f"num_devices: must be in [1, {len(devices)}] (devices available), got {n}")
@@ -55,8 +94,8 @@ def shard_batch(batch, mesh: Mesh | None):
     if mesh is None:
         return batch
     sharding = NamedSharding(mesh, P("data"))
-    if jax.process_count() == 1:
-        return jax.device_put(batch, sharding)
+    if jax.process_count() == 1 or all(d.process_index == jax.process_index() for d in mesh.devices.flat):
+        return jax.device_put(batch, sharding)  # every device of the mesh is this process's
 
     def local(x):
         per = x.shape[0] // jax.process_count()

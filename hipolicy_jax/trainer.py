@@ -148,8 +148,10 @@ def restore_newest_readable(directory: str, abstract, meta: dict):
 
 
 class _Logger:
-    def __init__(self, out_dir: str, tensorboard: bool):
-        self._jsonl = open(os.path.join(out_dir, "metrics.jsonl"), "a")
+    """metrics.jsonl and TensorBoard; ``out_dir`` None logs nothing (the other processes of a multi-process run)."""
+
+    def __init__(self, out_dir: str | None, tensorboard: bool):
+        self._jsonl = open(os.path.join(out_dir, "metrics.jsonl"), "a") if out_dir else None
         self._tb = None
         if tensorboard:
             from tensorboardX import SummaryWriter
@@ -157,6 +159,8 @@ class _Logger:
             self._tb = SummaryWriter(os.path.join(out_dir, "tb"))
 
     def log(self, step: int, kind: str, values: dict):
+        if self._jsonl is None:
+            return
         self._jsonl.write(jsonio.dumps({"step": step, "kind": kind, **values}) + "\n")
         self._jsonl.flush()
         if self._tb is not None:
@@ -165,7 +169,8 @@ class _Logger:
                     self._tb.add_scalar(f"{kind}/{k}", v, step)
 
     def close(self):
-        self._jsonl.close()
+        if self._jsonl is not None:
+            self._jsonl.close()
         if self._tb is not None:
             self._tb.close()
 
@@ -193,7 +198,8 @@ def fit(cfg: PolicyConfig, train_cfg: TrainConfig, dataset, out_dir: str, *,
     mesh = parallel.make_mesh(num_devices)
     parallel.check_batch_size(train_cfg.batch_size, mesh)
     ckpt_dir = os.path.join(out_dir, "checkpoints")
-    clean_incomplete_writes(ckpt_dir)
+    if parallel.is_primary():
+        clean_incomplete_writes(ckpt_dir)
 
     def fresh():
         return init_train_state(init_policy_params(cfg, action_dim, example["obs"], keys["init"]), tx)
@@ -205,17 +211,18 @@ def fit(cfg: PolicyConfig, train_cfg: TrainConfig, dataset, out_dir: str, *,
         state = fresh()
     else:
         _report(f"resuming from step {restored}")
-    state = parallel.replicate(state, mesh)
+    state = parallel.replicate(parallel.to_host(state) if jax.process_count() > 1 else state, mesh)
     ckpt = Checkpointer(ckpt_dir, train_cfg.ckpt_every, train_cfg.ckpt_keep)
-    start = int(state.step)
+    start = int(parallel.to_host(state.step))
     meta["param_count"] = param_count(state.params)
     meta["num_devices"] = 1 if mesh is None else mesh.size
     train_step = make_train_step(net, cfg, train_cfg, tx)
-    logger = _Logger(out_dir, tensorboard)
+    logger = _Logger(out_dir, tensorboard) if parallel.is_primary() else _Logger(None, False)
     end = train_cfg.num_steps if stop_at is None else min(stop_at, train_cfg.num_steps)
     losses: list[float] = []
     pending: list[dict] = []
-    bar = tqdm(total=train_cfg.num_steps, initial=start, disable=not progress, desc="train", unit="step",
+    bar = tqdm(total=train_cfg.num_steps, initial=start, disable=not progress or not parallel.is_primary(),
+               desc="train", unit="step",
                dynamic_ncols=True)
     t_last, n_last = time.perf_counter(), start
     stop: dict = {"signum": None}
@@ -231,7 +238,7 @@ def fit(cfg: PolicyConfig, train_cfg: TrainConfig, dataset, out_dir: str, *,
 
     def flush(done: int):
         nonlocal pending, t_last, n_last
-        host = jax.device_get(pending)
+        host = parallel.to_host(pending)
         pending = []
         bad = [m for m in host if not m["finite"]]
         if bad:

@@ -105,3 +105,45 @@ def test_evaluation_shards_episodes_across_devices():
     four, one = outs
     assert four["devices"] == 4 and "NamedSharding" in four["sharding"] and "'data'" in four["sharding"]
     assert four["steps"] == one["steps"] and four["success"] == one["success"]
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _two_processes(out, *extra) -> list[dict]:
+    """Run tests/workers/dist_worker.py as 2 processes of 2 CPU devices each on 127.0.0.1 (gloo)."""
+    worker = os.path.join(os.path.dirname(__file__), "workers", "dist_worker.py")
+    port = _free_port()
+    procs = [subprocess.Popen([sys.executable, worker, str(out), *extra], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True,
+                              env=dict(_env(), JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{port}", JAX_NUM_PROCESSES="2",
+                                       JAX_PROCESS_ID=str(i), JAX_NUM_CPU_DEVICES="2"))
+             for i in range(2)]
+    outs = []
+    for p in procs:
+        stdout, stderr = p.communicate(timeout=600)
+        assert p.returncode == 0, stderr[-3000:]
+        outs.append(json.loads(stdout.strip().splitlines()[-1]))
+    return sorted(outs, key=lambda o: o["process"])
+
+
+@pytest.mark.slow
+def test_two_processes_match_one_process_and_resume(tmp_path):
+    """2 processes × 2 CPU devices (gloo) train the same loss sequence as 1 process × 4 devices; each process holds
+    its own half of every batch; the checkpoint written at step 10 is restored by both processes."""
+    one = _run(tmp_path / "one", "--steps", "20", "--devices", "4", devices=4)
+    first = _two_processes(tmp_path / "two", "--steps", "20", "--stop-at", "10")
+    assert [(o["process"], o["processes"], o["devices"], o["start"]) for o in first] == [(0, 2, 4, 0), (1, 2, 4, 0)]
+    halves = [set(o["local_rows"]) for o in first]
+    assert not halves[0] & halves[1] and sorted(halves[0] | halves[1]) == sorted(first[0]["global_batch"])
+    assert len(halves[0]) == len(halves[1]) == 8
+    assert sorted(os.listdir(tmp_path / "two" / "checkpoints")) == ["1", "10", "5"]  # written once, not per process
+    rest = _two_processes(tmp_path / "two", "--steps", "20")
+    assert [o["start"] for o in rest] == [10, 10] and rest[0]["losses"] == rest[1]["losses"]
+    losses = _step_losses(tmp_path / "two")  # process 0 logs
+    np.testing.assert_allclose([losses[s] for s in range(1, 21)], one["losses"], rtol=1e-4)

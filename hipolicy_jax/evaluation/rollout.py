@@ -235,8 +235,8 @@ class Rollout:
     compiled program: calls with new ``policy_args`` of the same shapes (new parameters, thresholds) and the same
     number of episodes reuse it. ``traces`` counts how often the episode was traced (one per compile).
 
-    With several devices the episodes are sharded across them (when their count divides ``num_episodes``; otherwise
-    everything runs on one device) and ``policy_args`` is replicated.
+    With several (local) devices the episodes are sharded across them (when their count divides ``num_episodes``;
+    otherwise everything runs on one device) and ``policy_args`` is replicated.
     """
 
     def __init__(self, env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *, history_len: int,
@@ -261,7 +261,7 @@ class Rollout:
                                chunk_len=self.chunk_len)
             self._checked.add(signature)
         keys = jax.random.split(key, num_episodes)
-        mesh = parallel.make_mesh()
+        mesh = parallel.make_mesh(local=True)  # evaluation is process-local, also in a multi-process run
         if mesh is not None and num_episodes % mesh.size == 0:
             keys = parallel.shard_batch(keys, mesh)
             policy_args = parallel.replicate(policy_args, mesh)

@@ -11,6 +11,7 @@ settings of its evaluations), ``calibration.json`` and ``summary.json``.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import time
@@ -20,7 +21,7 @@ import numpy as np
 
 from hipolicy_jax.config import (ChunkConfig, EvalConfig, InferenceConfig, ModelConfig, PolicyConfig, TrainConfig,
                                  replace)
-from hipolicy_jax import envs
+from hipolicy_jax import envs, parallel
 from hipolicy_jax.data.dataset import train_heldout_datasets
 from hipolicy_jax.envs.base import PROPRIO_DIM
 from hipolicy_jax.envs.demos import check_buffer, check_buffer_fits_env, default_data_path, load_or_collect
@@ -123,16 +124,25 @@ def train(cfg: RunConfig) -> dict:
     """Train (or resume) the run, calibrate its thresholds, evaluate it; → the summary written to summary.json.
 
     The run directory is locked while this runs (``lock.RunLock``: a second training on it refuses). SIGINT /
-    SIGTERM stop after the current step with a checkpoint written (``trainer.TrainingInterrupted``)."""
+    SIGTERM stop after the current step with a checkpoint written (``trainer.TrainingInterrupted``).
+
+    In a multi-process run (``parallel.initialize_distributed``) every process trains its share of each batch;
+    process 0 alone holds the lock, collects missing demos, evaluates (on its own devices) and writes the run's
+    files; the others return ``{"steps", "process"}``."""
     out = prepare_out_dir(cfg.out_dir())
-    with RunLock(out):
+    with RunLock(out) if parallel.is_primary() else contextlib.nullcontext():
         return _train(cfg, out)
 
 
 def _train(cfg: RunConfig, out: str) -> dict:
     t0 = time.perf_counter()
+    primary = parallel.is_primary()
+    if primary:
+        load_or_collect(cfg.task, cfg.policy.encoder, cfg.episodes, cfg.data_path(), seed=cfg.demo_seed,
+                        progress=cfg.progress)
+    parallel.barrier("demos")  # the others read the demos process 0 wrote
     buffer = load_or_collect(cfg.task, cfg.policy.encoder, cfg.episodes, cfg.data_path(), seed=cfg.demo_seed,
-                             progress=cfg.progress)
+                             progress=False)
     env = envs.make_for_encoder(cfg.task, cfg.policy.encoder)
     check_buffer_fits_env(buffer, env, cfg.data_path())  # before any training: the run is evaluated in this env
     policy = cfg.policy
@@ -143,7 +153,8 @@ def _train(cfg: RunConfig, out: str) -> dict:
     keys = run_keys(cfg.train.seed)
     action_dim = int(buffer.data["action"].shape[-1])
     evaluator = Evaluator(env, policy, action_dim, cfg.inference)
-    write_inference(out, cfg.inference)
+    if primary:
+        write_inference(out, cfg.inference)
     last: dict = {}  # the latest in-training evaluation, reused when it ran on the final state
 
     def calibrate(params):
@@ -156,18 +167,27 @@ def _train(cfg: RunConfig, out: str) -> dict:
         return eval_summary(evaluator.evaluate(params, train_ds.normalizer, cfg.eval.episodes,
                                                eval_key(cfg.train.seed), thresholds))
 
+    def local(params):
+        # evaluation runs on process 0's devices alone: a multi-process state is brought to its host first
+        return params if jax.process_count() == 1 else parallel.to_host(params)
+
     def eval_fn(state, step):
-        thresholds, entropies = calibrate(state.ema_params)
-        summary = evaluate(state.ema_params, thresholds)
+        params = local(state.ema_params)
+        thresholds, entropies = calibrate(params)
+        summary = evaluate(params, thresholds)
         last.update(step=step, thresholds=thresholds, entropies=entropies, summary=summary)
         print(f"\n[eval @ {step}] " + ", ".join(f"{k}={v:.3g}" for k, v in summary.items()))
         return summary
 
-    result = fit(policy, cfg.train, train_ds, out, eval_fn=eval_fn if (cfg.eval.every or cfg.final_eval) else None,
+    evaluating = (cfg.eval.every or cfg.final_eval) and primary
+    result = fit(policy, cfg.train, train_ds, out, eval_fn=eval_fn if evaluating else None,
                  eval_every=cfg.eval.every or None,
                  meta_extra={"task": cfg.task, "data": os.path.abspath(cfg.data_path()), "val_ratio": cfg.val_ratio},
                  progress=cfg.progress, num_devices=cfg.num_devices)
-    params, step = result.state.ema_params, int(result.state.step)
+    step = int(parallel.to_host(result.state.step))
+    if not primary:
+        return {"steps": step, "process": jax.process_index()}
+    params = local(result.state.ema_params)
     if last.get("step") == step:
         thresholds, entropies, final = last["thresholds"], last["entropies"], last["summary"]
     else:
