@@ -19,7 +19,17 @@ from hipolicy_jax.runs.lock import RunLockedError
 from hipolicy_jax.runs.train import RunConfig, main
 from hipolicy_jax.trainer import CheckpointWriteError, TrainingInterrupted
 
+def _quiet_unraisable(hook):
+    """sys.unraisablehook that drops asyncio's 'Event loop is closed' from orbax's writer threads at shutdown."""
+    def quiet(unraisable):
+        if not (isinstance(unraisable.exc_value, RuntimeError) and "Event loop is closed" in str(unraisable.exc_value)):
+            hook(unraisable)
+
+    return quiet
+
+
 if __name__ == "__main__":
+    sys.unraisablehook = _quiet_unraisable(sys.unraisablehook)
     parallel.initialize_distributed()  # multi-process training when the launcher set JAX_COORDINATOR_ADDRESS
     try:
         main(tyro.cli(RunConfig, description=__doc__))

@@ -19,7 +19,9 @@ TensorBoard event files under ``tb/``.
 from __future__ import annotations
 
 import json
+import logging
 import os
+import re
 import shutil
 import signal
 import threading
@@ -52,12 +54,24 @@ class CheckpointWriteError(OSError):
     """A checkpoint could not be written (disk full, permissions, ...); the last committed one is intact."""
 
 
+def _os_errno(error: BaseException) -> int | None:
+    """The OS error number behind ``error``: an ``OSError`` in its chain, or the ``os_error_code`` tensorstore
+    (orbax's writer) puts into its messages (e.g. RESOURCE_EXHAUSTED ... [os_error_code='28'] for a full disk)."""
+    seen = error
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.errno:
+            return seen.errno
+        match = re.search(r"os_error_code='?(\d+)", str(seen))
+        if match:
+            return int(match.group(1))
+        seen = seen.__cause__ or seen.__context__
+    return None
+
+
 def _write_error(ckpt_dir: str, error: BaseException, last_step: int | None) -> BaseException:
-    """A one-line ``CheckpointWriteError`` for an OS-level failure anywhere in ``error``'s chain, else ``error``."""
-    cause = error
-    while cause is not None and not isinstance(cause, OSError):
-        cause = cause.__cause__ or cause.__context__
-    if cause is None:
+    """A one-line ``CheckpointWriteError`` for an OS-level failure behind ``error``, else ``error`` itself."""
+    code = _os_errno(error)
+    if code is None:
         return error
     try:
         free = f"{shutil.disk_usage(ckpt_dir).free / 2**20:.0f} MiB free"
@@ -65,9 +79,16 @@ def _write_error(ckpt_dir: str, error: BaseException, last_step: int | None) -> 
         free = "free space unknown"
     kept = f"the last committed checkpoint (step {last_step}) is intact" if last_step is not None else \
         "no checkpoint was committed yet"
-    reason = cause.strerror or str(cause).splitlines()[0][:200]
-    return CheckpointWriteError(cause.errno, f"writing a checkpoint to {ckpt_dir} failed ({reason}; {free}); "
-                                             f"{kept}: free space and rerun the same command to resume")
+    return CheckpointWriteError(code, f"writing a checkpoint to {ckpt_dir} failed ({os.strerror(code)}; {free}); "
+                                      f"{kept}: free space and rerun the same command to resume")
+
+
+class _QuietCheckpointThreads(logging.Filter):
+    """Drops the tracebacks orbax's writer threads log when a write fails: ``fit`` raises the failure itself as one
+    line (``CheckpointWriteError``)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not (record.levelno >= logging.ERROR and record.exc_info and "orbax" in record.pathname)
 
 
 class FitResult(NamedTuple):
@@ -232,6 +253,8 @@ def fit(cfg: PolicyConfig, train_cfg: TrainConfig, dataset, out_dir: str, *,
             raise KeyboardInterrupt
         stop["signum"] = signum
 
+    quiet = _QuietCheckpointThreads()
+    logging.getLogger("absl").addFilter(quiet)
     handlers = {}
     if threading.current_thread() is threading.main_thread():
         handlers = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -288,6 +311,7 @@ def fit(cfg: PolicyConfig, train_cfg: TrainConfig, dataset, out_dir: str, *,
     finally:
         for sig, old in handlers.items():
             signal.signal(sig, old)
+        logging.getLogger("absl").removeFilter(quiet)
         bar.close()
         try:
             ckpt.wait()
