@@ -145,3 +145,10 @@ def test_checkpoint_write_failure_is_one_line_and_keeps_the_last_checkpoint(data
     res = fit(tiny_cfg(), TRAIN, dataset, str(tmp_path / "run"), progress=False, tensorboard=False)
     assert res.start_step == 4
     np.testing.assert_allclose(res.losses, full.losses[4:], rtol=1e-6)
+
+
+def test_no_startup_noise():
+    """Importing the package (MuJoCo MJX included) prints nothing: no 'Failed to import warp' lines."""
+    proc = subprocess.run([sys.executable, "-c", "import hipolicy_jax.envs, hipolicy_jax.evaluation"],
+                          capture_output=True, text=True, timeout=300, env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    assert proc.returncode == 0 and proc.stdout == "" and "warp" not in proc.stderr, (proc.stdout, proc.stderr)
