@@ -93,6 +93,8 @@ class EncoderConfig:
     """Observation encoders. ``obs_type`` picks state-only, image (+state) or point cloud (+state)."""
 
     obs_type: ObsType = "state"
+    state_encoder: Literal["mlp", "identity"] = "mlp"  # identity: the raw (normalised) state window is the
+    # condition, as Diffusion Policy's low-dim configs
     state_hidden: tuple[int, ...] = (256, 256)  # low-dim MLP hidden sizes
     state_out: int = 64  # per-frame feature size of the state MLP
     # read only the first state_dims features of state (None: all). The MJX tasks' first 4 are proprioception (TCP
@@ -114,7 +116,10 @@ class EncoderConfig:
                  f"must be 'state', 'image' or 'pointcloud', got {self.obs_type!r}")
         _require(0 < self.crop_size <= self.image_size, "encoder.crop_size",
                  f"must be in (0, image_size={self.image_size}], got {self.crop_size}")
-        _require(self.point_dims in (3, 6), "encoder.point_dims", f"must be 3 (xyz) or 6 (xyz+rgb), got {self.point_dims}")
+        _require(self.point_dims in (3, 6), "encoder.point_dims",
+                 f"must be 3 (xyz) or 6 (xyz+rgb), got {self.point_dims}")
+        _require(self.state_encoder in ("mlp", "identity"), "encoder.state_encoder",
+                 f"must be 'mlp' or 'identity', got {self.state_encoder!r}")
         _require(self.num_points >= 1, "encoder.num_points", f"must be >= 1, got {self.num_points}")
         _require(self.state_dims is None or self.state_dims >= 1, "encoder.state_dims",
                  f"must be None (all) or >= 1, got {self.state_dims}")

@@ -499,3 +499,18 @@ def test_obs_encoder_rejects_bad_observations(obs_type, key, bad):
         obs[key] = jnp.zeros(bad)
     with pytest.raises(ValueError, match=f"obs\\['{key}'\\]"):
         ObsEncoder(cfg.encoder).init(jax.random.key(0), obs)
+
+
+def test_one_stride_with_the_identity_state_encoder_is_diffusion_policy_lowdim_to_the_parameter():
+    """Diffusion Policy's low-dim U-Net (down dims 256/512/1024, kernel 5, step embedding 256, the raw 2 x 20 obs
+    window as the condition, A = 2, horizon 16) has 65,783,298 parameters; so has one stride here."""
+    from hipolicy_jax.config import ChunkConfig, EncoderConfig, ModelConfig, PolicyConfig
+    from hipolicy_jax.models.policy_net import init_policy_params, param_count
+
+    cfg = PolicyConfig(chunk=ChunkConfig(strides=(1,), obs_horizon=2, chunk_len=16),
+                       encoder=EncoderConfig(state_encoder="identity"),
+                       model=ModelConfig(size="paper", step_embed_dim=256))
+    obs = {"state": jnp.zeros((1, 1, 2, 20))}
+    shapes = jax.eval_shape(lambda: init_policy_params(cfg, 2, obs, jax.random.key(0)))
+    assert param_count(shapes) == 65_783_298
+    assert "obs_encoder" not in shapes["params"]  # nothing between the observations and the FiLM heads

@@ -190,8 +190,9 @@ class ObsEncoder(nn.Module):
     * ``image``: ``(B, M, L_h, image_size, image_size, 3)`` in [-1, 1] when ``cfg.obs_type == "image"``;
     * ``point_cloud``: ``(B, M, L_h, P, point_dims)`` when ``cfg.obs_type == "pointcloud"``.
 
-    Each frame's feature is the state-MLP feature (``state_out``) concatenated with the image (``image_out``) or
-    point-cloud (``point_out``) feature, all produced by one shared set of weights for every frequency and frame;
+    Each frame's feature is the state-MLP feature (``state_out``; the normalised state itself with
+    ``state_encoder='identity'``, as Diffusion Policy's low-dim configs) concatenated with the image (``image_out``)
+    or point-cloud (``point_out``) feature, all produced by one shared set of weights for every frequency and frame;
     ``F`` is the sum. Extra keys are ignored.
 
     ``frame_offsets`` (``(M, L_h)`` ints, ``data.windowing.obs_offsets``; ``PolicyNet`` passes it) says which time
@@ -208,11 +209,6 @@ class ObsEncoder(nn.Module):
     cfg: EncoderConfig
     frame_offsets: tuple[tuple[int, ...], ...] | None = None
 
-    @property
-    def frame_dim(self) -> int:
-        """F, the feature size of one frame."""
-        extra = {"state": 0, "image": self.cfg.image_out, "pointcloud": self.cfg.point_out}[self.cfg.obs_type]
-        return self.cfg.state_out + extra
 
     def _check(self, obs) -> tuple[int, int, int]:
         cfg = self.cfg
@@ -251,7 +247,10 @@ class ObsEncoder(nn.Module):
         # (B, U, ...): one entry per distinct time step
         frames = {k: obs[k].reshape((b, m * lh) + obs[k].shape[3:])[:, first] for k in keys if k is not None}
         state = frames["state"] if cfg.state_dims is None else frames["state"][..., :cfg.state_dims]
-        feats = [StateEncoder(cfg.state_hidden, cfg.state_out, name="state")(state)]
+        if cfg.state_encoder == "identity":  # Diffusion Policy low-dim: the normalised state itself
+            feats = [state.astype(jnp.float32)]
+        else:
+            feats = [StateEncoder(cfg.state_hidden, cfg.state_out, name="state")(state)]
         if cfg.obs_type == "image":
             feats.append(ImageEncoder(cfg.image_channels, cfg.num_keypoints, cfg.image_out, cfg.crop_size,
                                       name="image")(frames["image"], train=train))
