@@ -12,6 +12,8 @@ Tables (sub-commands), each trained with ``hipolicy_jax.runs.train`` and evaluat
 - ``thresholds``: entropy-guided execution with thresholds at several percentile pairs of held-out demo entropies.
 - ``hparams``: L_h, L_c and M around the defaults (3, 8, 3).
 - ``pilot``: the protocol's DP-only pilot that picks each task's low-data regime (``--regime rlow``).
+- ``campaign``: all of the protocol's tables (results/PROTOCOL.md) — every run and evaluation under one progress
+  bar with its ETA, then every table from the records.
 
 Budgets: ``smoke`` (tiny model, a dozen steps: checks the pipeline in a couple of minutes), ``cpu`` (CPU model,
 2000 steps: about 10 minutes of training per run on 2 cores), ``gpu`` (paper-size model, N=100, 100 DDPM steps).
@@ -53,7 +55,7 @@ from hipolicy_jax.runs.train import RunConfig
 
 TaskName = Literal["press_button", "latch_door", "stack_cubes", "pick_place"]
 ObsName = Literal["state", "image", "pointcloud"]
-TABLES = ("main", "ablation", "execution", "thresholds", "hparams", "pilot")
+TABLES = ("main", "ablation", "execution", "thresholds", "hparams", "pilot", "campaign")
 BASELINE_NAME = {"state": "DP", "image": "DP (image)", "pointcloud": "DP3"}
 
 
@@ -62,6 +64,8 @@ class PaperArgs:
     budget: Literal["smoke", "cpu", "gpu"] = "cpu"
     tasks: tuple[TaskName, ...] = ("press_button", "stack_cubes", "latch_door", "pick_place")
     seeds: tuple[int, ...] = (0, 1, 2)
+    baseline_seeds: tuple[int, ...] = ()  # more seeds for the single-frequency baseline columns (the protocol: 3 4,
+    # as their runs train in under 5 minutes)
     regime: Literal["r100", "rlow"] = "r100"  # demo regime (results/PROTOCOL.md): 100 demos, or the pilot's Rlow
     runs: str = "runs/paper"  # run dirs: <runs>/<budget>/<task>/<obs>/<variant>/seed<k>
     results: str = "results"  # <results>/<table>.{md,png,json}
@@ -96,6 +100,16 @@ class ExecutionArgs(PaperArgs):
 
 
 @dataclasses.dataclass(frozen=True)
+class CampaignArgs(PaperArgs):
+    """The whole protocol: every table's runs and evaluations under one progress bar, then every table."""
+
+    baseline_seeds: tuple[int, ...] = (3, 4)
+    episodes: int | None = 100
+    regimes: tuple[Literal["r100", "rlow"], ...] = ("r100", "rlow")
+    obs_types: tuple[ObsName, ...] = ("state",)  # main table in R100; add pointcloud for the DP3 columns
+
+
+@dataclasses.dataclass(frozen=True)
 class PilotArgs(PaperArgs):
     """The protocol's DP-only pilot that chooses each task's Rlow regime (seed 0)."""
 
@@ -119,7 +133,8 @@ class HparamsArgs(PaperArgs):
 
 
 SUBCOMMANDS: dict[str, type] = {"main": MainArgs, "ablation": AblationArgs, "execution": ExecutionArgs,
-                                "thresholds": ThresholdsArgs, "hparams": HparamsArgs, "pilot": PilotArgs}
+                                "thresholds": ThresholdsArgs, "hparams": HparamsArgs, "pilot": PilotArgs,
+                                "campaign": CampaignArgs}
 
 
 def table_name(args: PaperArgs) -> str:
@@ -162,6 +177,16 @@ def train_args(args: PaperArgs, task: str, obs_type: str, changes, seed: int) ->
                       eval_episodes=eval_episodes(args), progress=args.progress)
 
 
+def column_seeds(args: PaperArgs, col: Column) -> tuple[int, ...]:
+    """The seeds a column is evaluated on: ``seeds``, plus ``baseline_seeds`` for single-frequency baselines."""
+    return tuple(args.seeds) + (tuple(args.baseline_seeds) if tuple(col.changes) == DP else ())
+
+
+def table_seeds(args: PaperArgs) -> tuple[int, ...]:
+    """Every seed any column of the table has (cells use the seeds their column has)."""
+    return tuple(dict.fromkeys((*args.seeds, *args.baseline_seeds)))
+
+
 def campaign(args: PaperArgs) -> Campaign:
     return Campaign(args.budget, runs=args.runs, data=args.data, records=args.records, episodes=eval_episodes(args),
                     from_records=args.from_records, progress=args.progress)
@@ -179,7 +204,7 @@ def collect(args: PaperArgs, columns: list[Column]) -> list[dict]:
     """Every (task, seed, column) evaluation of the table, from its run's record or trained / evaluated and recorded
     (one progress bar over them, with an ETA) → one record per evaluation (per-episode outcomes included)."""
     camp = campaign(args)
-    jobs = [(t, s, c) for t in args.tasks for s in args.seeds for c in columns]
+    jobs = [(t, s, c) for t in args.tasks for c in columns for s in column_seeds(args, c)]
     records, missing = [], []
     bar = tqdm(jobs, desc=f"{table_name(args)} ({args.regime})", unit="eval", disable=not args.progress,
                dynamic_ncols=True)
@@ -309,7 +334,9 @@ def cost_note(records: list[dict]) -> str:
 def results_header(title: str, args: PaperArgs, notes: list[str]) -> str:
     b = BUDGETS[args.budget]
     lines = [f"# {title}", "", f"Command: `{command_line(args)}`", "",
-             f"Protocol: `results/PROTOCOL.md`. Regime `{args.regime}`; seeds {', '.join(str(s) for s in args.seeds)}. "
+             f"Protocol: `results/PROTOCOL.md`. Regime `{args.regime}`; seeds {', '.join(str(s) for s in args.seeds)}"
+             + (f" (single-frequency baselines also {', '.join(map(str, args.baseline_seeds))})"
+                if args.baseline_seeds else "") + ". "
              f"Cells: mean over seeds with its 95 % bootstrap interval over seeds × episodes. Budget "
              f"`{args.budget}`: {b.note}; evaluation episodes: {eval_episodes(args)} per seed, the same initial "
              f"states for every column."]
@@ -335,7 +362,7 @@ def write_results(args: PaperArgs, title: str, notes: list[str], table: str, rec
 def success_by_task_figure(args: PaperArgs, records: list[dict], labels: list[str], title: str):
     """``figure(path)``: success-rate bars per task, one bar per column label."""
     def figure(path):
-        series = {c: [outcomes(records, "success_rate", args.seeds, task=t, column=c) for t in args.tasks]
+        series = {c: [outcomes(records, "success_rate", table_seeds(args), task=t, column=c) for t in args.tasks]
                   for c in labels}
         return bar_figure(path, list(args.tasks), [("success rate (%)", series)], title, scale=100.0)
 
@@ -398,10 +425,10 @@ def grouped_rows(args: PaperArgs, records, columns: list[str], metric: str = "su
         for c in columns:
             gain = ""
             if rel_to and c in rel_to and len(tasks) > 1:
-                gain = _rel(_task_mean(records, metric, args.seeds, tasks, rel_to[c]),
-                            _task_mean(records, metric, args.seeds, tasks, c))
-            out.append(ci(records, metric, args.seeds, tasks, scale, column=c) + gain)
-        return out + [paired_cell(records, args.seeds, tasks, new, base) for new, base in paired]
+                gain = _rel(_task_mean(records, metric, table_seeds(args), tasks, rel_to[c]),
+                            _task_mean(records, metric, table_seeds(args), tasks, c))
+            out.append(ci(records, metric, table_seeds(args), tasks, scale, column=c) + gain)
+        return out + [paired_cell(records, table_seeds(args), tasks, new, base) for new, base in paired]
 
     for name, tasks in (("precise", precise), ("non-precise", other)):
         for t in tasks:
@@ -427,12 +454,17 @@ def demo_steps(args: PaperArgs, task: str, obs_types: tuple[str, ...] = ("state"
 # ------------------------------------------------------------------------------------------------ tables
 
 
-def main_table(args: MainArgs) -> str:
+def main_columns(args: MainArgs) -> list[Column]:
     columns = []
-    obs_types = args.resolved_obs_types()
-    for obs in obs_types:
+    for obs in args.resolved_obs_types():
         base = BASELINE_NAME[obs]
         columns += [Column(base, obs, DP), Column(f"{base}+HiPolicy", obs)]
+    return columns
+
+
+def main_table(args: MainArgs) -> str:
+    columns = main_columns(args)
+    obs_types = args.resolved_obs_types()
     records = collect(args, columns)
     labels = [c.label for c in columns]
     rel = {f"{BASELINE_NAME[o]}+HiPolicy": BASELINE_NAME[o] for o in obs_types}
@@ -500,13 +532,13 @@ def execution_table(args: ExecutionArgs) -> str:
         label = tasks[0] if len(tasks) == 1 else "**Average**"
         cells = [label]
         for c in labels:
-            cells += [ci(records, "success_rate", args.seeds, tasks, 100.0, column=c),
-                      ci(records, "mean_steps_success", args.seeds, tasks, column=c),
-                      ci(records, "mean_decisions", args.seeds, tasks, column=c)]
-        cells.append(_stride_cell(records, args.seeds, column="HiPolicy",
+            cells += [ci(records, "success_rate", table_seeds(args), tasks, 100.0, column=c),
+                      ci(records, "mean_steps_success", table_seeds(args), tasks, column=c),
+                      ci(records, "mean_decisions", table_seeds(args), tasks, column=c)]
+        cells.append(_stride_cell(records, table_seeds(args), column="HiPolicy",
                                   **({"task": tasks[0]} if len(tasks) == 1 else {})))
-        cells += [paired_cell(records, args.seeds, tasks, "HiPolicy", "DP+AAC"),
-                  paired_cell(records, args.seeds, tasks, "HiPolicy", "DP")]
+        cells += [paired_cell(records, table_seeds(args), tasks, "HiPolicy", "DP+AAC"),
+                  paired_cell(records, table_seeds(args), tasks, "HiPolicy", "DP")]
         rows.append(cells)
     table = markdown_table(header, rows)
     notes = ["SR: success rate (%). Steps: mean control steps of the successful episodes. Decisions: policy calls "
@@ -526,9 +558,10 @@ def execution_table(args: ExecutionArgs) -> str:
         fig, ax = plt.subplots(figsize=(6.5, 4.2))
         for i, t in enumerate(args.tasks):
             for j, c in enumerate(labels):
-                sr = stats.bootstrap_mean(outcomes(records, "success_rate", args.seeds, task=t, column=c),
+                seeds = table_seeds(args)
+                sr = stats.bootstrap_mean(outcomes(records, "success_rate", seeds, task=t, column=c),
                                           resamples=1).mean
-                steps = stats.bootstrap_mean(outcomes(records, "mean_steps_success", args.seeds, task=t, column=c),
+                steps = stats.bootstrap_mean(outcomes(records, "mean_steps_success", seeds, task=t, column=c),
                                              resamples=1).mean
                 ax.scatter(steps, 100 * sr, color=f"C{j}", marker="os^Dv"[i % 5], s=40,
                            label=c if i == 0 else None)
@@ -546,9 +579,13 @@ def execution_table(args: ExecutionArgs) -> str:
                          records, figure)
 
 
+def thresholds_columns(args: ThresholdsArgs) -> list[Column]:
+    return [Column(f"p{a:g}/p{b:g}", percentiles=(a, b)) for a, b in args.pairs] + \
+        [Column("always stride 1", guided=False)]
+
+
 def thresholds_table(args: ThresholdsArgs) -> str:
-    columns = [Column(f"p{a:g}/p{b:g}", percentiles=(a, b)) for a, b in args.pairs]
-    columns.append(Column("always stride 1", guided=False))
+    columns = thresholds_columns(args)
     records = collect(args, columns)
     header = ["Task", "Percentiles", "Thresholds", "SR (%)", "Steps", "Strides 1/2/3 (%)"]
     rows = []
@@ -558,9 +595,10 @@ def thresholds_table(args: ThresholdsArgs) -> str:
             th = [r["thresholds"] for r in hits if r.get("thresholds")]
             th_cell = ("{" + ", ".join(f"{np.mean([x[k] for x in th]):.2f}" for k in range(1, len(th[0]) - 1)) + "}"
                        if th else "–")
-            rows.append([t, c.label, th_cell, ci(records, "success_rate", args.seeds, [t], 100.0, column=c.label),
-                         ci(records, "mean_steps_success", args.seeds, [t], column=c.label),
-                         _stride_cell(records, args.seeds, task=t, column=c.label)])
+            seeds = table_seeds(args)
+            rows.append([t, c.label, th_cell, ci(records, "success_rate", seeds, [t], 100.0, column=c.label),
+                         ci(records, "mean_steps_success", seeds, [t], column=c.label),
+                         _stride_cell(records, seeds, task=t, column=c.label)])
     table = markdown_table(header, rows)
     notes = ["Inner thresholds at the given percentiles of the run's held-out demo entropies (mean over seeds); "
              "higher thresholds execute the highest frequency more often.",
@@ -568,7 +606,7 @@ def thresholds_table(args: ThresholdsArgs) -> str:
 
     def figure(path):
         labels = [c.label for c in columns]
-        panels = [(ylabel, {t: [outcomes(records, metric, args.seeds, task=t, column=c) for c in labels]
+        panels = [(ylabel, {t: [outcomes(records, metric, table_seeds(args), task=t, column=c) for c in labels]
                             for t in args.tasks})
                   for ylabel, metric, _ in PANELS]
         return bar_figure(path, labels, panels, "threshold ablation")
@@ -588,15 +626,18 @@ def hparam_changes(lh: int, lc: int, m: int, base: PolicyConfig) -> tuple[tuple[
     return tuple(sorted(changes))
 
 
-def hparams_table(args: HparamsArgs) -> str:
+def hparams_columns(args: HparamsArgs) -> list[Column]:
     base = BUDGETS[args.budget].policy
-    columns = [Column(f"L_h={lh}, L_c={lc}, M={m}", "state", hparam_changes(lh, lc, m, base))
-               for lh, lc, m in args.rows]
+    return [Column(f"L_h={lh}, L_c={lc}, M={m}", "state", hparam_changes(lh, lc, m, base)) for lh, lc, m in args.rows]
+
+
+def hparams_table(args: HparamsArgs) -> str:
+    columns = hparams_columns(args)
     records = collect(args, columns)
     rows = []
     for (lh, lc, m), c in zip(args.rows, columns):
-        per_task = [ci(records, "success_rate", args.seeds, [t], 100.0, column=c.label) for t in args.tasks]
-        avg = ci(records, "success_rate", args.seeds, list(args.tasks), 100.0, column=c.label)
+        per_task = [ci(records, "success_rate", table_seeds(args), [t], 100.0, column=c.label) for t in args.tasks]
+        avg = ci(records, "success_rate", table_seeds(args), list(args.tasks), 100.0, column=c.label)
         default = " (default)" if not c.changes else ""
         rows.append([f"{lh}{default}", str(lc), str(m), *per_task] + ([avg] if len(args.tasks) > 1 else []))
     header = ["L_h", "L_c", "M", *args.tasks] + (["Average"] if len(args.tasks) > 1 else [])
@@ -604,7 +645,7 @@ def hparams_table(args: HparamsArgs) -> str:
     notes = ["Success rate (%) with entropy-guided execution; M frequencies = strides 1..M (M=1 is DP)."]
 
     def figure(path):
-        series = {t: [outcomes(records, "success_rate", args.seeds, task=t, column=c.label) for c in columns]
+        series = {t: [outcomes(records, "success_rate", table_seeds(args), task=t, column=c.label) for c in columns]
                   for t in args.tasks}
         return bar_figure(path, [c.label for c in columns], [("success rate (%)", series)],
                           "hyper-parameter ablation", scale=100.0)
@@ -656,8 +697,61 @@ def _changes_text(changes: dict) -> str:
     return ", ".join(f"{k.removeprefix('train.').replace('_', ' ')} {v}" for k, v in changes.items()) or "100 demos"
 
 
+COLUMNS = {"main": main_columns, "ablation": lambda args: [Column(label, "state", c) for label, c in ABLATION],
+           "execution": lambda args: list(EXECUTION), "thresholds": thresholds_columns, "hparams": hparams_columns}
+
+
+def protocol_tables(args: "CampaignArgs") -> list[PaperArgs]:
+    """The tables of results/PROTOCOL.md v1 with the campaign's settings: (a) main in both regimes, (c) execution in
+    both regimes, (b) ablation in Rlow on all tasks, (d) thresholds and (e) hyper-parameters in Rlow on two tasks."""
+    common = {f.name: getattr(args, f.name) for f in dataclasses.fields(PaperArgs)}
+    two = tuple(t for t in ("press_button", "latch_door") if t in args.tasks)
+    tables = []
+    for regime in args.regimes:
+        r = {**common, "regime": regime}
+        tables += [MainArgs(**r, obs_types=args.obs_types if regime == "r100" else ("state",)),
+                   ExecutionArgs(**r)]
+    if "rlow" in args.regimes:
+        r = {**common, "regime": "rlow"}
+        tables += [AblationArgs(**r), ThresholdsArgs(**{**r, "tasks": two}), HparamsArgs(**{**r, "tasks": two})]
+    return tables
+
+
+def campaign_table(args: "CampaignArgs") -> str:
+    """Every evaluation of the protocol's tables under ONE progress bar (with its ETA), each kept in its run's record
+    as it finishes, then every table rebuilt from the records; → the path of the campaign's index."""
+    camp = campaign(args)
+    tables = protocol_tables(args)
+    jobs, skipped = [], set()
+    for t in tables:
+        for col in COLUMNS[table_name(t)](t):
+            for task in t.tasks:
+                try:
+                    changes = regime_changes(t.regime, task)
+                except ValueError:
+                    skipped.add(f"{task} ({t.regime}: no pilot choice yet)")
+                    continue
+                jobs += [(task, col, seed, changes) for seed in column_seeds(t, col)]
+    jobs = list(dict.fromkeys((task, col, seed, tuple(sorted(ch.items()))) for task, col, seed, ch in jobs))
+    bar = tqdm(jobs, desc="campaign", unit="eval", disable=not args.progress, dynamic_ncols=True)
+    for task, col, seed, changes in bar:
+        bar.set_postfix_str(f"{task} seed {seed} {col.label} {dict(changes) or 'r100'}")
+        camp.evaluate(task, col, seed, dict(changes))
+    paths = [BUILDERS[table_name(t)](dataclasses.replace(t, from_records=True)) for t in tables]
+    lines = [f"# Campaign ({args.budget})", "", f"Command: `{command_line(args)}`", "",
+             f"{len(jobs)} evaluations; tables:", ""] + [f"- [{os.path.basename(p)}]({os.path.basename(p)})"
+                                                           for p in paths]
+    if skipped:
+        lines += ["", "Not run yet: " + ", ".join(sorted(skipped))]
+    index = os.path.join(args.results, "campaign.md")
+    with open(index, "w") as f:
+        f.write("\n".join(lines) + "\n")
+    return index
+
+
 BUILDERS = {"main": main_table, "ablation": ablation_table, "execution": execution_table,
-            "thresholds": thresholds_table, "hparams": hparams_table, "pilot": pilot_table}
+            "thresholds": thresholds_table, "hparams": hparams_table, "pilot": pilot_table,
+            "campaign": campaign_table}
 
 
 def main(args: PaperArgs) -> str:

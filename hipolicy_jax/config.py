@@ -108,6 +108,7 @@ class EncoderConfig:
     image_out: int = 64
     # point-cloud encoder (DP3)
     num_points: int = 512
+    point_sampling: Literal["random", "fps"] = "random"  # down-sampling of the camera's points; DP3: fps
     point_dims: int = 3  # 3 = xyz, 6 = xyz+rgb
     point_out: int = 64
 
@@ -118,6 +119,8 @@ class EncoderConfig:
                  f"must be in (0, image_size={self.image_size}], got {self.crop_size}")
         _require(self.point_dims in (3, 6), "encoder.point_dims",
                  f"must be 3 (xyz) or 6 (xyz+rgb), got {self.point_dims}")
+        _require(self.point_sampling in ("random", "fps"), "encoder.point_sampling",
+                 f"must be 'random' or 'fps' (farthest-point), got {self.point_sampling!r}")
         _require(self.state_encoder in ("mlp", "identity"), "encoder.state_encoder",
                  f"must be 'mlp' or 'identity', got {self.state_encoder!r}")
         _require(self.num_points >= 1, "encoder.num_points", f"must be >= 1, got {self.num_points}")

@@ -368,3 +368,21 @@ def test_train_args_vision_policies_read_proprioception_only():
     assert parse("--policy.encoder.obs-type", "image", "--policy.encoder.state-dims", "7") == 7
     assert paper.train_args(paper.MainArgs(), TASK, "pointcloud", (), 0).policy.encoder.state_dims == PROPRIO_DIM
     assert paper.train_args(paper.MainArgs(), TASK, "pointcloud", (), 0).policy.encoder.num_points == 128
+
+
+def test_campaign_follows_the_protocol():
+    """The campaign's tables are the protocol's: main and execution in both regimes, ablation in Rlow on every task,
+    thresholds and hyper-parameters in Rlow on two tasks; baselines get the extra seeds."""
+    args = paper.parse_args(["campaign", "--budget", "smoke"])
+    tables = paper.protocol_tables(args)
+    got = [(paper.table_name(t), t.regime, t.tasks) for t in tables]
+    four = ("press_button", "stack_cubes", "latch_door", "pick_place")
+    two = ("press_button", "latch_door")
+    assert got == [("main", "r100", four), ("execution", "r100", four), ("main", "rlow", four),
+                   ("execution", "rlow", four), ("ablation", "rlow", four), ("thresholds", "rlow", two),
+                   ("hparams", "rlow", two)]
+    assert all(t.episodes == 100 and t.baseline_seeds == (3, 4) for t in tables)
+    main = tables[0]
+    dp, hip = paper.main_columns(main)
+    assert paper.column_seeds(main, dp) == (0, 1, 2, 3, 4) and paper.column_seeds(main, hip) == (0, 1, 2)
+    assert paper.parse_args(shlex.split(paper.command_line(args))[3:]) == args

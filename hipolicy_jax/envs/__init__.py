@@ -38,12 +38,14 @@ def make(task_name: str, **overrides) -> MjxEnv:
 def encoder_env_kwargs(encoder: EncoderConfig) -> dict:
     """``make`` / ``collect_demos`` keywords for a policy with this encoder: the ``obs_keys`` it reads and, for
     vision, the ``camera`` (``camera.CameraConfig``): images of ``image_size`` pixels square, or ``num_points`` points
-    (with rgb when ``point_dims == 6``) cast from the default camera resolution."""
+    (with rgb when ``point_dims == 6``, down-sampled by ``point_sampling``) cast from the default camera
+    resolution."""
     kwargs: dict = {"obs_keys": encoder.obs_keys}
     if encoder.obs_type == "image":
         kwargs["camera"] = CameraConfig(height=encoder.image_size, width=encoder.image_size)
     elif encoder.obs_type == "pointcloud":
-        kwargs["camera"] = CameraConfig(num_points=encoder.num_points, point_rgb=encoder.point_dims == 6)
+        kwargs["camera"] = CameraConfig(num_points=encoder.num_points, point_rgb=encoder.point_dims == 6,
+                                        sampling=encoder.point_sampling)
     return kwargs
 
 

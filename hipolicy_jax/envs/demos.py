@@ -100,10 +100,11 @@ def collect_demos(task: str, num_episodes: int, key: jax.Array, obs_keys: tuple[
 
 
 def default_data_path(task: str, encoder: EncoderConfig, episodes: int) -> str:
-    """``data/<task>_<obs keys>[_<camera>]_<episodes>.zarr``: the camera part (``84px``, ``512pts``, ``512pts-rgb``)
-    appears for image and point-cloud encoders, so buffers of different resolutions never collide."""
-    cam = {"state": "", "image": f"_{encoder.image_size}px",
-           "pointcloud": f"_{encoder.num_points}pts" + ("-rgb" if encoder.point_dims == 6 else "")}[encoder.obs_type]
+    """``data/<task>_<obs keys>[_<camera>]_<episodes>.zarr``: the camera part (``84px``, ``512pts``, ``512pts-rgb``,
+    ``512pts-fps``) appears for image and point-cloud encoders, so buffers of different cameras never collide."""
+    points = (f"_{encoder.num_points}pts" + ("-rgb" if encoder.point_dims == 6 else "")
+              + ("-fps" if encoder.point_sampling == "fps" else ""))
+    cam = {"state": "", "image": f"_{encoder.image_size}px", "pointcloud": points}[encoder.obs_type]
     return os.path.join("data", f"{task}_{'-'.join(encoder.obs_keys)}{cam}_{episodes}.zarr")
 
 

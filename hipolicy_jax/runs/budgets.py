@@ -52,12 +52,13 @@ BUDGETS: dict[str, Budget] = {
 }
 
 # Config changes per observation type. Vision policies read proprioception only from the state (objects are seen
-# through the camera), as DP / DP3; DP3 predicts the clean sample, as its release.
+# through the camera), as DP / DP3; DP3 predicts the clean sample and farthest-point samples its points, as its
+# release.
 OBS_CHANGES: dict[str, dict[str, Any]] = {
     "state": {},
     "image": {"encoder.obs_type": "image", "encoder.state_dims": PROPRIO_DIM},
     "pointcloud": {"encoder.obs_type": "pointcloud", "encoder.state_dims": PROPRIO_DIM,
-                   "diffusion.prediction_type": "sample"},
+                   "encoder.point_sampling": "fps", "diffusion.prediction_type": "sample"},
 }
 # Changes of an observation type on one budget. On the cpu budget DP3 sees 128 points: a point-cloud train step at
 # batch 64 takes 0.43 s with 128 points, 1.51 s with 512 on 2 cores (benchmarks/results/train_step_cpu.json);
