@@ -229,6 +229,7 @@ class FlowConfig:
 
 
 ExecutionKind = Literal["chunk", "aac", "te"]
+HandoverKind = Literal["naive", "inpaint"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -253,6 +254,12 @@ class InferenceConfig:
       actions of the selected frequency; ``aac`` (adaptive action chunking) the first k of them, k from the
       entropy curve of the N samples; ``te`` (ACT's temporal ensembling) decides at every control step and executes
       the exp(−te_decay·i)-weighted mean of the stored chunks' predictions for that step.
+    - ``delay``: asynchronous execution under an inference delay of d control steps (``chunk`` execution only,
+      d ≤ L_c/2): the next decision starts d steps before the current chunk is used up, from the observation at
+      that time, while the robot executes the old chunk's last d actions; the new chunk then runs from its action
+      d. 0 is synchronous execution. ``handover`` says how the new chunk meets the d committed actions: ``naive``
+      switches to it as sampled; ``inpaint`` guides its first d actions (at every frequency) to the committed ones
+      inside the one sampler, and the entropy is read over the free actions only.
     """
 
     num_samples: int = 16
@@ -265,6 +272,8 @@ class InferenceConfig:
     execution: ExecutionKind = "chunk"
     te_decay: float = 0.01  # temporal ensembling's m (ACT): weight exp(-m·i), i = 0 for the oldest prediction
     entropy_eps: float = 1e-6
+    delay: int = 0  # inference delay d in control steps (asynchronous execution); 0 = synchronous
+    handover: HandoverKind = "naive"  # how a delayed decision's chunk meets the committed actions
 
     def __post_init__(self):
         _require(self.num_samples >= 1, "inference.num_samples", f"(N) must be >= 1, got {self.num_samples}")
@@ -287,12 +296,19 @@ class InferenceConfig:
                  f"must be 'chunk', 'aac' or 'te', got {self.execution!r}")
         _require(self.te_decay >= 0, "inference.te_decay", f"must be >= 0, got {self.te_decay}")
         _require(self.entropy_eps > 0, "inference.entropy_eps", f"must be > 0, got {self.entropy_eps}")
+        _require(self.delay >= 0, "inference.delay", f"(control steps) must be >= 0, got {self.delay}")
+        _require(self.handover in ("naive", "inpaint"), "inference.handover",
+                 f"must be 'naive' or 'inpaint', got {self.handover!r}")
+        _require(self.delay == 0 or self.execution == "chunk", "inference.delay",
+                 f"asynchronous execution runs whole chunks (--inference.execution chunk), got execution "
+                 f"{self.execution!r} with delay {self.delay}")
 
     def sampler_settings(self) -> "InferenceConfig":
         """Only what compiled samplers and rollouts depend on (N, sampler, steps, execution, entropy ε), the rest at
         defaults: their static key, so thresholds or calibration settings never recompile."""
         return InferenceConfig(num_samples=self.num_samples, sampler=self.sampler, num_steps=self.num_steps,
-                               execution=self.execution, te_decay=self.te_decay, entropy_eps=self.entropy_eps)
+                               execution=self.execution, te_decay=self.te_decay, entropy_eps=self.entropy_eps,
+                               delay=self.delay, handover=self.handover)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -16,6 +16,11 @@
 6. selects the execution frequency from ascending thresholds (lowest entropy → highest frequency) and returns
    sample 0's chunk at that frequency.
 
+With a ``prefix`` (asynchronous execution's prefix inpainting) the first d actions of every frequency's segment
+are known: after each update of the chain they are overwritten with where a chain ending in them would stand
+(the head's ``renoise``, fresh noise per step), so the last step leaves them equal to the prefix and the free
+actions were denoised around them; the entropy then averages over the free actions only.
+
 Chunk layout (see ``config``): segments in descending-stride order, so stride ``strides[k]`` (frequency index k,
 0 = highest frequency) lives in segment ``M-1-k``.
 """
@@ -41,13 +46,24 @@ class SampleResult(NamedTuple):
     actions: jax.Array  # (B, L_c, A) sample 0's chunk at the selected stride
 
 
-def action_entropy(chunks: jax.Array, eps: float = 1e-6) -> jax.Array:
+def action_entropy(chunks: jax.Array, eps: float = 1e-6, free: jax.Array | None = None) -> jax.Array:
     """Gaussian action entropy of N samples: chunks (..., N, T, A) → (...), N ≥ 2.
 
-    H = mean over (T, A) of 0.5·log(2πe·var + eps), var the unbiased (ddof=1) variance over the N axis.
+    H = mean over (T, A) of 0.5·log(2πe·var + eps), var the unbiased (ddof=1) variance over the N axis; with
+    ``free`` (..., T) bool the mean runs over the free steps only.
     """
     var = jnp.var(chunks, axis=-3, ddof=1)
-    return jnp.mean(0.5 * jnp.log(2.0 * jnp.pi * jnp.e * var + eps), axis=(-2, -1))
+    h = 0.5 * jnp.log(2.0 * jnp.pi * jnp.e * var + eps)
+    if free is None:
+        return jnp.mean(h, axis=(-2, -1))
+    w = free.astype(h.dtype)[..., None]
+    return jnp.sum(h * w, axis=(-2, -1)) / (jnp.sum(w, axis=(-2, -1)) * h.shape[-1])
+
+
+def prefix_mask(chunk: ChunkConfig, prefix_len: int, valid: jax.Array) -> jax.Array:
+    """(B, M·L_c) bool: the first ``prefix_len`` steps of every frequency's segment, where ``valid`` (B,)."""
+    steps = jnp.arange(chunk.horizon) % chunk.chunk_len
+    return (steps < prefix_len)[None, :] & jnp.asarray(valid, bool)[:, None]
 
 
 def select_frequency(entropy: jax.Array, thresholds, num_freqs: int) -> jax.Array:
@@ -77,8 +93,12 @@ def precomputes_film(net) -> bool:
 
 
 def denoise_chain(net, params, cond, key: jax.Array, *, head: GenerativeHead, inference: InferenceConfig,
-                  horizon: int, action_dim: int, film: bool = False) -> jax.Array:
+                  horizon: int, action_dim: int, film: bool = False, known: jax.Array | None = None,
+                  known_mask: jax.Array | None = None) -> jax.Array:
     """One chain of the head's sampler for a batch → normalised chunks (B, horizon, A), from Gaussian noise.
+
+    ``known`` (B, horizon, A) normalised actions and ``known_mask`` (B, horizon) bool: inpainting; after every
+    update the masked entries become ``plan.renoise(row, known, fresh noise)``, so they end equal to ``known``.
 
     ``cond``: the condition (B, M, Dc), or with ``film`` the precomputed FiLM observation halves
     ``{block: (B, K, 2C)}`` (``film_condition``); each step then only adds its step half (one row of ``film_steps``,
@@ -98,7 +118,12 @@ def denoise_chain(net, params, cond, key: jax.Array, *, head: GenerativeHead, in
             out = net.apply(params, x, step, cond, method=net.denoise_film)
         else:
             out = net.apply(params, x, jnp.full((batch,), row.time), cond, method=net.denoise)
-        return plan.update(row, x, out, k), None
+        if known is None:
+            return plan.update(row, x, out, k), None
+        k, k_known = jax.random.split(k)
+        x = plan.update(row, x, out, k)
+        target = plan.renoise(row, known, jax.random.normal(k_known, x.shape, x.dtype))
+        return jnp.where(known_mask[..., None], target, x), None
 
     step_keys = jax.random.split(key, plan.table.time.shape[0])
     x, _ = jax.lax.scan(body, x, (plan.table, step_keys))
@@ -107,7 +132,8 @@ def denoise_chain(net, params, cond, key: jax.Array, *, head: GenerativeHead, in
 
 def sample(params, normalizer, obs: dict[str, jax.Array], key: jax.Array, thresholds=None, *, net,
            cfg: PolicyConfig, action_dim: int, inference: InferenceConfig = InferenceConfig(),
-           obs_normalized: bool = False) -> SampleResult:
+           obs_normalized: bool = False, prefix: jax.Array | None = None,
+           prefix_valid: jax.Array | None = None) -> SampleResult:
     """Sample N action chunks per observation and select the execution frequency, in one call.
 
     Args:
@@ -120,6 +146,9 @@ def sample(params, normalizer, obs: dict[str, jax.Array], key: jax.Array, thresh
         (always the highest frequency).
       net: the ``PolicyNet`` module; cfg: its ``PolicyConfig`` (the head comes from ``cfg.objective``).
       inference: N, sampler and number of steps (``InferenceConfig``; its thresholds are not read here).
+      prefix: (B, d, A) unnormalised actions already committed for the chunk's first d control steps, or None:
+        inpainted into the first d steps of every frequency's segment where ``prefix_valid`` (B,) bool (default
+        all); the entropy then reads the other steps.
     """
     head = make_head(cfg)
     n = inference.num_samples
@@ -127,12 +156,23 @@ def sample(params, normalizer, obs: dict[str, jax.Array], key: jax.Array, thresh
     film = precomputes_film(net)
     if film:
         cond = net.apply(params, cond, method=net.film_condition)  # {block: (B, K, 2C)}, once per call
+    known = free = None
+    if prefix is not None:
+        batch, d = prefix.shape[0], prefix.shape[1]
+        if not 1 <= d <= cfg.chunk.chunk_len:
+            raise ValueError(f"prefix: (B, d, A) with 1 <= d <= chunk_len={cfg.chunk.chunk_len}, got {prefix.shape}")
+        valid = jnp.ones((batch,), bool) if prefix_valid is None else prefix_valid
+        mask = prefix_mask(cfg.chunk, d, valid)
+        tiled = jnp.tile(jnp.pad(prefix, ((0, 0), (0, cfg.chunk.chunk_len - d), (0, 0))),
+                         (1, cfg.chunk.num_freqs, 1))  # (B, T, A)
+        known, free = normalizer.normalize("action", tiled), ~mask
     chain = functools.partial(denoise_chain, net, params, cond, head=head, inference=inference,
-                              horizon=cfg.chunk.horizon, action_dim=action_dim, film=film)
+                              horizon=cfg.chunk.horizon, action_dim=action_dim, film=film, known=known,
+                              known_mask=None if known is None else mask)
     chunks = jax.vmap(chain)(jax.random.split(key, n))  # (N, B, T, A)
     chunks = normalizer.unnormalize("action", jnp.swapaxes(chunks, 0, 1))  # (B, N, T, A)
     if n >= 2:
-        entropy = action_entropy(chunks, inference.entropy_eps)
+        entropy = action_entropy(chunks, inference.entropy_eps, free)
     else:
         entropy = jnp.full(chunks.shape[:1], jnp.nan, jnp.float32)
     k = select_frequency(entropy, thresholds, cfg.chunk.num_freqs)

@@ -84,3 +84,46 @@ def test_episode_loop_executes_the_decided_number_of_actions():
     np.testing.assert_array_equal(np.asarray(res.start)[0, :6], [0, 1, 3, 6, 7, 9])
     np.testing.assert_array_equal(np.asarray(res.executed)[0, :6], [1, 2, 3, 1, 2, 2])  # the last one hits the limit
     np.testing.assert_array_equal(np.asarray(res.steps), [11, 11])
+
+
+def test_delayed_chunk_executes_the_committed_actions_then_the_new_chunk_from_d():
+    """Asynchronous execution, d = 2, L_c = 4: the first decision runs C[0:2] and commits C[2:4]; every later one
+    runs the committed pair, then nothing more of its own chunk (L_c − d = 2), and commits its C[2:4]."""
+    chunk = ChunkConfig(strides=(1,), chunk_len=4)
+    ex = execution.make_execution(InferenceConfig(delay=2))
+    assert isinstance(ex, execution.DelayedChunk) and ex.min_actions(chunk) == 2 and ex.prefix(None) is None
+    state = ex.init(chunk, 1)
+    out, state = ex.decide(_decision([[0.0], [1.0], [2.0], [3.0]]), state, chunk)
+    assert int(out.num_actions) == 2 and out.actions[:2, 0].tolist() == [0.0, 1.0]
+    assert state.pending[:, 0].tolist() == [2.0, 3.0] and bool(state.valid)
+    out, state = ex.decide(_decision([[10.0], [11.0], [12.0], [13.0]]), state, chunk)
+    assert out.actions[:2, 0].tolist() == [2.0, 3.0] and state.pending[:, 0].tolist() == [12.0, 13.0]
+    ex1 = execution.make_execution(InferenceConfig(delay=1, handover="inpaint"))
+    state = ex1.init(chunk, 1)
+    _, state = ex1.decide(_decision([[0.0], [1.0], [2.0], [3.0]]), state, chunk)
+    out, state = ex1.decide(_decision([[10.0], [11.0], [12.0], [13.0]]), state, chunk)
+    assert int(out.num_actions) == 3 and out.actions[:3, 0].tolist() == [3.0, 11.0, 12.0]
+    pending, valid = ex1.prefix(state)
+    assert pending[:, 0].tolist() == [13.0] and bool(valid)
+    with pytest.raises(ValueError, match=r"inference.delay: .* 1 <= d <= chunk_len/2 = 2, got 3"):
+        execution.make_execution(InferenceConfig(delay=3)).init(chunk, 1)
+    with pytest.raises(ValueError, match="inference.delay: asynchronous execution runs whole chunks"):
+        InferenceConfig(delay=1, execution="te")
+
+
+def test_delayed_decisions_start_every_chunk_len_minus_d_steps():
+    """In the episode loop a delay-d policy decides every L_c − d control steps, each executing L_c − d actions."""
+    env = envs.make("press_button")
+    chunk = ChunkConfig(strides=(1,), chunk_len=4)
+    ex = execution.make_execution(InferenceConfig(delay=1))
+
+    def policy(obs_history, key, state, args):
+        tcp = obs_history["state"][-1, :3]
+        actions = jnp.tile(jnp.concatenate([tcp, jnp.zeros((1,))]), (4, 1))
+        return ex.decide(_decision(actions), state, chunk)
+
+    res = rollout.evaluate_stateful(policy, lambda obs, key: ex.init(chunk, 4), env, 2, jax.random.key(0),
+                                    history_len=1, chunk_len=4, max_steps=10, min_actions=ex.min_actions(chunk))
+    assert res.valid.shape == (2, 4) and np.asarray(res.valid).sum(axis=1).tolist() == [4, 4]
+    np.testing.assert_array_equal(np.asarray(res.start)[0], [0, 3, 6, 9])
+    np.testing.assert_array_equal(np.asarray(res.executed)[0], [3, 3, 3, 1])

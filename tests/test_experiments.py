@@ -143,6 +143,24 @@ def test_execution_strategies_in_closed_loop(tiny, tmp_path):
     np.testing.assert_array_equal(np.asarray(res.start)[0, :int(res.steps[0])], np.arange(int(res.steps[0])))
 
 
+def test_asynchronous_execution_in_closed_loop(tiny, tmp_path):
+    """Delay d = 2 with prefix inpainting from experiments.evaluate: every decision executes L_c − d = 6 actions and
+    the next one starts when 2 of them remain."""
+    _, run = tiny
+    report = evaluate.main(parse_with_run_inference(evaluate.EvaluateArgs, [
+        "--checkpoint", run, "--episodes", "2", "--inference.delay", "2",
+        "--inference.handover", "inpaint", "--video", "none", "--out", str(tmp_path / "delay")]))
+    assert report["inference"]["delay"] == 2 and report["inference"]["handover"] == "inpaint"
+    s = report["with_eg"]
+    assert 1.0 <= s["mean_actions_per_decision"] <= 6.0 + 1e-6  # only the last decision may stop early
+    last = load_run(run)
+    ev = make_evaluator(last, dataclasses.replace(SMOKE.inference, delay=2, handover="inpaint"), max_steps=24)
+    res = ev.evaluate(last.policy.params, last.policy.normalizer, 2, jax.random.key(0))
+    for e in range(2):
+        n = int(np.asarray(res.valid)[e].sum())
+        np.testing.assert_array_equal(np.asarray(res.start)[e, :n], 6 * np.arange(n))
+
+
 def test_calibrate_demos_reproduces_training_calibration(tiny, tmp_path, capsys):
     _, run = tiny
     record = calibrate.main(parse_with_run_inference(calibrate.CalibrateArgs, [

@@ -4,6 +4,7 @@ A fake network with the ``PolicyNet`` protocol (``apply(params, ..., method=enco
 exact; tests with the real network live in test_policy.py.
 """
 
+import functools
 import math
 
 import flax.struct
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 
 from hipolicy_jax.config import ChunkConfig, DiffusionConfig, InferenceConfig, PolicyConfig
-from hipolicy_jax.sampling import action_entropy, make_sampler, segment_of, select_frequency
+from hipolicy_jax.sampling import action_entropy, make_sampler, sample, segment_of, select_frequency
 
 
 def test_entropy_two_samples_exact():
@@ -89,6 +90,10 @@ class AffineNormalizer:
     def unnormalize(self, key, x):
         assert key == "action"
         return x * self.scale
+
+    def normalize(self, key, x):
+        assert key == "action"
+        return x / self.scale
 
 
 def _cfg(strides=(1, 2, 3), steps=10, objective="diffusion"):
@@ -178,3 +183,53 @@ def test_every_head_gives_the_same_result_shapes_and_entropy_semantics(objective
         np.testing.assert_allclose(h, 0.5 * math.log(1e-6), rtol=1e-5)
     else:
         assert np.all(np.isfinite(h)) and np.all(h > 0.5 * math.log(1e-6) + 1.0)
+
+
+@pytest.mark.parametrize("objective,sampler,steps", [("diffusion", "ddpm", 10), ("diffusion", "ddim", 3),
+                                                     ("flow", "euler", 4), ("flow", "euler", 1)])
+def test_prefix_inpainting_ends_on_the_committed_actions_for_every_head(objective, sampler, steps):
+    """Asynchronous execution's inpainting: where the prefix is valid, the first d steps of every frequency's
+    segment end equal to the committed actions (the last renoise is the clean prefix) and the entropy reads the
+    free steps only; where it is not, the result is the plain sampler's up to the inpainting noise draws."""
+    net = FakeNet()
+    cfg = _cfg(steps=10, objective=objective)
+    inference = InferenceConfig(num_samples=6, sampler=sampler, num_steps=steps)
+    fn = jax.jit(functools.partial(sample, net=net, cfg=cfg, action_dim=2, inference=inference))
+    params = {"w": jnp.float32(0.5), "v": jnp.float32(0.3)}
+    norm = AffineNormalizer(jnp.float32(2.0))
+    prefix = jnp.asarray([[[0.3, -0.2], [0.1, 0.4]], [[9.0, 9.0], [9.0, 9.0]]], jnp.float32)  # (B=2, d=2, A=2)
+    res = fn(params, norm, _obs(), jax.random.key(3), RELEASE, prefix=prefix, prefix_valid=jnp.array([True, False]))
+    segs = np.asarray(res.chunks).reshape(2, 6, 3, 4, 2)  # (B, N, M, L_c, A)
+    np.testing.assert_allclose(segs[0, :, :, :2], np.broadcast_to(np.asarray(prefix[0]), (6, 3, 2, 2)), atol=1e-5)
+    assert np.abs(segs[1, :, :, :2] - 9.0).min() > 1.0  # not inpainted
+    free = np.ones((3, 4), bool)
+    free[:, :2] = False
+    np.testing.assert_allclose(float(res.entropy[0]),
+                               float(action_entropy(jnp.asarray(segs[0][:, free]))), rtol=1e-5)
+    plain = fn(params, norm, _obs(), jax.random.key(3), RELEASE)
+    if sampler != "ddpm":  # deterministic updates: the not-inpainted row is the plain sampler's exactly
+        np.testing.assert_allclose(np.asarray(res.chunks[1]), np.asarray(plain.chunks[1]), atol=1e-6)
+        np.testing.assert_allclose(float(res.entropy[1]), float(plain.entropy[1]), rtol=1e-5)
+    with pytest.raises(ValueError, match=r"prefix: \(B, d, A\) with 1 <= d <= chunk_len=4"):
+        fn(params, norm, _obs(), jax.random.key(3), RELEASE, prefix=jnp.zeros((2, 5, 2)))
+
+
+def test_renoise_is_the_path_marginal_and_clean_after_the_last_step():
+    """The heads' ``renoise``: diffusion's sqrt(ᾱ_prev)·x0 + sqrt(1−ᾱ_prev)·ε, flow's τ_next·ε + (1−τ_next)·x0; both
+    give x0 itself after the last step."""
+    from hipolicy_jax.heads import make_head
+    from hipolicy_jax.heads.diffusion import alphas_cumprod
+    x0, eps = jnp.full((1, 4, 2), 0.7), jnp.full((1, 4, 2), -1.3)
+    cfg = _cfg(steps=10)
+    plan = make_head(cfg).plan(InferenceConfig(sampler="ddim", num_steps=5))
+    ab = alphas_cumprod(cfg.diffusion)
+    row0 = jax.tree.map(lambda a: a[0], plan.table)  # t = 8 → the step leads to t = 6
+    np.testing.assert_allclose(np.asarray(plan.renoise(row0, x0, eps))[0, 0, 0],
+                               math.sqrt(ab[6]) * 0.7 - math.sqrt(1 - ab[6]) * 1.3, rtol=1e-5)
+    last = jax.tree.map(lambda a: a[-1], plan.table)
+    np.testing.assert_allclose(np.asarray(plan.renoise(last, x0, eps)), np.asarray(x0), rtol=1e-6)
+    flow = make_head(_cfg(objective="flow")).plan(InferenceConfig(sampler="euler", num_steps=4))
+    row0 = jax.tree.map(lambda a: a[0], flow.table)  # τ 1 → 0.75
+    np.testing.assert_allclose(np.asarray(flow.renoise(row0, x0, eps))[0, 0, 0], 0.75 * -1.3 + 0.25 * 0.7, rtol=1e-6)
+    last = jax.tree.map(lambda a: a[-1], flow.table)
+    np.testing.assert_allclose(np.asarray(flow.renoise(last, x0, eps)), np.asarray(x0), rtol=1e-6)

@@ -15,6 +15,16 @@ here + one line in ``EXECUTIONS`` (+ its name in ``config.ExecutionKind``).
 - ``te``: temporal ensembling (ACT): a decision at every control step; the executed action is the weighted mean of
   every stored chunk's prediction for the current step (the last L_c decisions), weights exp(−m·i) with i = 0 for
   the oldest prediction (ACT's m = 0.01, ``inference.te_decay``).
+- ``chunk`` with ``inference.delay`` d > 0: asynchronous execution under an inference delay (``DelayedChunk``). A
+  decision taken at control step t0 (from the observation at t0) is ready at t0 + d; meanwhile the robot executes
+  the d actions the previous chunk committed for t0..t0+d−1. The new chunk C (its action i is for t0+i) then runs
+  from C[d], and the next decision starts d steps before C is used up, at t0 + L_c − d: every decision executes
+  L_c − d actions, the d committed ones first. The episode's first decision has nothing committed and runs
+  synchronously (C[0 : L_c − d]). With ``handover='inpaint'`` the committed actions are passed to the sampler as
+  the prefix of the new chunk (``sampling.sample(prefix=...)``), at every frequency.
+
+A strategy whose decisions read their memory into the sampler offers ``prefix(state) -> (prefix (d, A), valid ())``
+(None otherwise); ``policy.make_policy_fn`` passes it on.
 """
 
 from __future__ import annotations
@@ -155,8 +165,58 @@ class TemporalEnsembling:
         return PolicyOutput(action[None], d.stride, d.entropy, jnp.int32(1)), EnsembleState(chunks, count)
 
 
+class DelayState(NamedTuple):
+    """Asynchronous execution's memory: the d actions (d, A) the last chunk committed for the next decision's
+    delay, and whether there are any yet () bool (False before the episode's first decision)."""
+
+    pending: jax.Array
+    valid: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class DelayedChunk:
+    """Whole chunks under an inference delay of ``delay`` control steps (see the module docstring)."""
+
+    delay: int
+    handover: str = "naive"  # 'naive' | 'inpaint'
+    name: str = "chunk"
+
+    def check(self, chunk: ChunkConfig) -> None:
+        if not 1 <= self.delay <= chunk.chunk_len // 2:
+            raise ValueError(f"inference.delay: a decision must be ready before the next one starts, so "
+                             f"1 <= d <= chunk_len/2 = {chunk.chunk_len // 2}, got {self.delay}")
+
+    def exec_len(self, chunk: ChunkConfig) -> int:
+        return chunk.chunk_len
+
+    def min_actions(self, chunk: ChunkConfig) -> int:
+        self.check(chunk)
+        return chunk.chunk_len - self.delay
+
+    def init(self, chunk: ChunkConfig, action_dim: int) -> DelayState:
+        self.check(chunk)
+        return DelayState(jnp.zeros((self.delay, action_dim), jnp.float32), jnp.zeros((), bool))
+
+    def prefix(self, state: DelayState):
+        return (state.pending, state.valid) if self.handover == "inpaint" else None
+
+    def decide(self, d: Decision, state: DelayState, chunk: ChunkConfig):
+        lc, k = chunk.chunk_len, self.delay
+        new = d.actions.astype(jnp.float32)  # (L_c, A), action i for control step t0 + i
+        first = jnp.where(state.valid, state.pending, new[:k])  # the d steps the decision takes to be ready
+        actions = jnp.concatenate([first, new[k:]], axis=0)  # the last d are committed to the next decision
+        out = PolicyOutput(actions, d.stride, d.entropy, jnp.int32(lc - k))
+        return out, DelayState(new[lc - k:], jnp.ones((), bool))
+
+
 def make_execution(inference: InferenceConfig) -> ExecutionStrategy:
-    """The execution strategy ``inference.execution`` names, with its settings."""
+    """The execution strategy ``inference.execution`` names, with its settings (``DelayedChunk`` when
+    ``inference.delay`` > 0)."""
+    if inference.delay > 0:
+        if inference.execution != "chunk":
+            raise ValueError(f"inference.delay: asynchronous execution runs whole chunks, got execution "
+                             f"{inference.execution!r}")
+        return DelayedChunk(inference.delay, inference.handover)
     if inference.execution not in EXECUTIONS:
         raise ValueError(f"inference.execution: must be one of {sorted(EXECUTIONS)}, got {inference.execution!r}")
     if inference.execution == "aac" and inference.num_samples < 2:
@@ -171,5 +231,6 @@ EXECUTIONS = {
     "te": lambda inference: TemporalEnsembling(decay=inference.te_decay),
 }
 
-__all__ = ["EXECUTIONS", "AdaptiveChunking", "ChunkExecution", "Decision", "EnsembleState", "TemporalEnsembling",
+__all__ = ["EXECUTIONS", "AdaptiveChunking", "ChunkExecution", "Decision", "DelayState", "DelayedChunk",
+           "EnsembleState", "TemporalEnsembling",
            "aac_chunk_size", "make_execution", "step_entropies"]

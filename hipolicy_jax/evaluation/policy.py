@@ -27,6 +27,29 @@ class PolicyArgs(NamedTuple):
     thresholds: Any = None
 
 
+def make_decision_fn(net, cfg: PolicyConfig, action_dim: int,
+                     inference: InferenceConfig = InferenceConfig()) -> Callable[..., Decision]:
+    """``decide(obs_history, key, args: PolicyArgs, prefix=None) -> Decision`` for ONE episode: the sampler's N
+    chunks, entropy and selected frequency before any execution strategy. ``prefix``: None or ``(actions (d, A),
+    valid ())`` committed actions to inpaint (``sampling.sample``). What the policy server and the exported policy
+    compute; ``make_policy_fn`` adds the execution strategy."""
+    keys = cfg.encoder.obs_keys
+    inference = inference.sampler_settings()
+
+    def decide(obs_history, key, args: PolicyArgs, prefix=None) -> Decision:
+        missing = [k for k in keys if k not in obs_history]
+        if missing:
+            raise ValueError(f"obs_history lacks {missing}; the policy reads {keys}")
+        windows = gather_history({k: obs_history[k] for k in keys}, cfg.chunk)
+        obs = jax.tree.map(lambda x: x[None], windows)  # (1, M, L_h, ...)
+        pre = {} if prefix is None else {"prefix": prefix[0][None], "prefix_valid": prefix[1][None]}
+        res = sample(args.params, args.normalizer, obs, key, args.thresholds, net=net, cfg=cfg,
+                     action_dim=action_dim, inference=inference, **pre)
+        return Decision(*(x[0] for x in res))
+
+    return decide
+
+
 def make_policy_fn(net, cfg: PolicyConfig, action_dim: int,
                    inference: InferenceConfig = InferenceConfig()) -> tuple[Callable, Callable]:
     """``(policy_fn, init_fn)`` for ONE episode (vmap over episodes), as ``rollout.Rollout`` takes them:
@@ -38,19 +61,12 @@ def make_policy_fn(net, cfg: PolicyConfig, action_dim: int,
     ``inference.execution`` (``execution.make_execution``); only ``inference.sampler_settings()`` is used, the
     thresholds travel in ``args``.
     """
-    keys = cfg.encoder.obs_keys
-    inference = inference.sampler_settings()
     execution = make_execution(inference)
+    decide = make_decision_fn(net, cfg, action_dim, inference)
+    prefix = getattr(execution, "prefix", lambda state: None)
 
     def policy_fn(obs_history, key, state, args: PolicyArgs):
-        missing = [k for k in keys if k not in obs_history]
-        if missing:
-            raise ValueError(f"obs_history lacks {missing}; the policy reads {keys}")
-        windows = gather_history({k: obs_history[k] for k in keys}, cfg.chunk)
-        obs = jax.tree.map(lambda x: x[None], windows)  # (1, M, L_h, ...)
-        res = sample(args.params, args.normalizer, obs, key, args.thresholds, net=net, cfg=cfg,
-                     action_dim=action_dim, inference=inference)
-        return execution.decide(Decision(*(x[0] for x in res)), state, cfg.chunk)
+        return execution.decide(decide(obs_history, key, args, prefix(state)), state, cfg.chunk)
 
     def init_fn(obs, key):
         return execution.init(cfg.chunk, action_dim)

@@ -7,8 +7,11 @@ A head turns the denoiser network into a generative model of action chunks. It o
   regression target; the loss is the mean squared error between the network's output and ``target``.
 - **sampling**: ``plan(inference) -> StepPlan``: a precomputed table of per-step arrays (each ``(S,)``, applied in
   order, ``table.time`` the network's time input at that step) and ``update(row, x, model_out, key) -> x_next``, the
-  rule applied at every step; ``finish(x)`` runs once after the last step. ``sampling.denoise_chain`` scans the
-  table; the N-sample entropy, stride selection and evaluation are the same code path for every head.
+  rule applied at every step; ``finish(x)`` runs once after the last step; ``renoise(row, x0, noise)`` is where
+  a chain whose clean sample is ``x0`` stands after that step (the path's marginal at the step's target level:
+  ``x0`` itself after the last step), which prefix inpainting writes into the known actions after each update.
+  ``sampling.denoise_chain`` scans the table; the N-sample entropy, stride selection and evaluation are the same
+  code path for every head.
 
 Heads are frozen dataclasses (hashable, usable as static arguments of ``jax.jit``) built from a ``PolicyConfig`` by
 the registry in ``heads/__init__.py``. Adding a head = one module here + one registry line.
@@ -34,11 +37,13 @@ class TrainingExample(NamedTuple):
 
 class StepPlan(NamedTuple):
     """What the sampler scans: ``table`` (a NamedTuple of (S,) arrays with a ``time`` field), the per-step
-    ``update(row, x, model_out, key) -> x_next`` and ``finish(x) -> x`` after the last step."""
+    ``update(row, x, model_out, key) -> x_next``, ``finish(x) -> x`` after the last step and
+    ``renoise(row, x0, noise) -> x_next`` the marginal of a chain with clean sample ``x0`` after the step."""
 
     table: Any
     update: Callable[[Any, jax.Array, jax.Array, jax.Array], jax.Array]
     finish: Callable[[jax.Array], jax.Array]
+    renoise: Callable[[Any, jax.Array, jax.Array], jax.Array]
 
 
 class GenerativeHead(Protocol):

@@ -66,6 +66,8 @@ class ReverseTable(NamedTuple):
     c_eps: jax.Array  # weight of the model's ε
     c_eps_c: jax.Array  # weight of the ε recomputed from the clipped clean sample
     sigma: jax.Array
+    sqrt_ab_prev: jax.Array  # sqrt(ᾱ) of the level the step leads to (1 after the last step)
+    sqrt_1m_ab_prev: jax.Array
 
 
 def resolve_sampler(cfg: DiffusionConfig, inference: InferenceConfig) -> tuple[str, int]:
@@ -120,7 +122,8 @@ def reverse_table(cfg: DiffusionConfig, sampler: str, num_steps: int) -> Reverse
         c_eps, c_eps_c = (np.sqrt(1.0 - ab_prev), zero) if sampler == "ddim" else (zero, np.sqrt(1.0 - ab_prev))
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
     return ReverseTable(jnp.asarray(t, jnp.int32), f32(np.sqrt(ab_t)), f32(np.sqrt(1.0 - ab_t)), f32(c_x0),
-                        f32(c_xt), f32(c_eps), f32(c_eps_c), f32(sigma))
+                        f32(c_xt), f32(c_eps), f32(c_eps_c), f32(sigma), f32(np.sqrt(ab_prev)),
+                        f32(np.sqrt(1.0 - ab_prev)))
 
 
 def add_noise(cfg: DiffusionConfig, x0: jax.Array, noise: jax.Array, t: jax.Array) -> jax.Array:
@@ -176,7 +179,10 @@ class DiffusionHead:
             def update(row, x, out, key):
                 return reverse_step(cfg, row, x, out, None)
 
-        return StepPlan(table, update, identity)
+        def renoise(row, x0, noise):
+            return row.sqrt_ab_prev * x0 + row.sqrt_1m_ab_prev * noise
+
+        return StepPlan(table, update, identity, renoise)
 
     def describe(self, inference: InferenceConfig) -> str:
         sampler, steps = resolve_sampler(self.cfg, inference)

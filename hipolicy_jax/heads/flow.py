@@ -29,6 +29,7 @@ class EulerTable(NamedTuple):
 
     time: jax.Array
     dt: jax.Array
+    tau_next: jax.Array  # τ after the step, 1 − (k+1)/K (0 after the last)
 
 
 def resolve_sampler(inference: InferenceConfig) -> tuple[str, int]:
@@ -44,7 +45,8 @@ def euler_table(cfg: FlowConfig, num_steps: int) -> EulerTable:
     if num_steps < 1:
         raise ValueError(f"inference.num_steps: the flow head needs >= 1 Euler step, got {num_steps}")
     tau = 1.0 - np.arange(num_steps, dtype=np.float64) / num_steps
-    return EulerTable(jnp.asarray(tau * cfg.time_scale, jnp.float32), jnp.full((num_steps,), 1.0 / num_steps))
+    return EulerTable(jnp.asarray(tau * cfg.time_scale, jnp.float32), jnp.full((num_steps,), 1.0 / num_steps),
+                      jnp.asarray(1.0 - np.arange(1, num_steps + 1) / num_steps, jnp.float32))
 
 
 def sample_time(cfg: FlowConfig, key: jax.Array, batch: int) -> jax.Array:
@@ -78,7 +80,10 @@ class FlowHead:
         def finish(x):
             return jnp.clip(x, -cfg.clip_range, cfg.clip_range)
 
-        return StepPlan(euler_table(cfg, steps), update, finish if cfg.clip_sample else identity)
+        def renoise(row, x0, noise):
+            return row.tau_next * noise + (1.0 - row.tau_next) * x0
+
+        return StepPlan(euler_table(cfg, steps), update, finish if cfg.clip_sample else identity, renoise)
 
     def describe(self, inference: InferenceConfig) -> str:
         return f"Euler {resolve_sampler(inference)[1]}"
