@@ -230,6 +230,11 @@ class MjxEnv:
                 shapes["point_cloud"] = (cfg.num_points, 6 if cfg.point_rgb else 3)
         return shapes
 
+    @property
+    def obs_dtypes(self) -> dict[str, str]:
+        """Observation key -> dtype name (the camera's image is uint8, everything else float32)."""
+        return {k: ("uint8" if k == "image" else "float32") for k in self.obs_shapes}
+
     def reset(self, key: jax.Array) -> State:
         """Start an episode with randomised initial conditions drawn from ``key``."""
         k_init, k_hand, k_rng = jax.random.split(key, 3)
