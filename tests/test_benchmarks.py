@@ -5,6 +5,7 @@ The figures themselves live in ``benchmarks/results``; nothing here asserts a ti
 
 import json
 import math
+import os
 
 import pytest
 
@@ -234,3 +235,22 @@ def test_precomputed_film_equals_per_step_film():
     concat = jnp.concatenate([jnp.broadcast_to(step[:, None], (2, 3, d)), c], axis=-1)
     np.testing.assert_allclose(head.apply({"params": film}, FiLMInput(step, c)),
                                head.apply({"params": film}, concat), rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.slow
+def test_delay_benchmark(tmp_path):
+    """Asynchronous execution rows of a tiny run: synchronous, then d = 1 with both hand-overs; a rerun resumes."""
+    from benchmarks import delay
+    run = _tiny_run(tmp_path, "diffusion")
+    flags = ["--runs", f"press_button:tiny:{run}", "--delays", "0", "1", "--episodes", "2", "--max-steps", "12",
+             "--out-dir", str(tmp_path / "out")]
+    out = delay.main(flags)
+    rows = out["rows"]
+    assert [(r["delay"], r["handover"]) for r in rows] == [(0, "sync"), (1, "inpaint"), (1, "naive")]
+    for r in rows:
+        assert 0.0 <= r["success_rate"] <= 1.0 and len(r["success"]) == 2 and r["mean_decisions"] >= 1
+    sync, delayed = rows[0], rows[1]
+    assert sync["mean_actions_per_decision"] <= 8 and delayed["mean_actions_per_decision"] <= 7  # L_c − d
+    assert os.path.exists(out["png"])
+    again = delay.main(flags)
+    assert [r["eval_s"] for r in again["rows"]] == [r["eval_s"] for r in rows]  # resumed, not re-run
