@@ -254,3 +254,15 @@ def test_delay_benchmark(tmp_path):
     assert os.path.exists(out["png"])
     again = delay.main(flags)
     assert [r["eval_s"] for r in again["rows"]] == [r["eval_s"] for r in rows]  # resumed, not re-run
+
+
+def test_serving_benchmark(tmp_path):
+    """The serving benchmark on a tiny run: three single-call paths and a small load test, all replies received."""
+    from benchmarks import serving
+    run = _tiny_run(tmp_path, "diffusion")
+    out = serving.main(["--run", run, "--calls", "2", "--clients", "2", "--requests", "5",
+                        "--out-dir", str(tmp_path / "out")])
+    assert [r["path"] for r in out["rows"]] == ["in-process (jit)", "exported program", "websocket round trip"]
+    for r in out["rows"]:
+        _finite(r, ["median_ms", "p90_ms", "ratio_to_in_process"])
+    assert out["load"]["replies"] == 10 and out["load"]["failures"] == 0
