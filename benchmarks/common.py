@@ -41,6 +41,42 @@ SIZES: dict[str, dict[str, Any]] = {
 }
 
 
+# The shapes of the PyTorch Diffusion Policy comparison (PERFORMANCE.md), at paper size (down dims 256/512/1024,
+# kernel 5, a 256-dim step embedding) with the raw observation window as the condition (identity state encoder):
+# name -> (PolicyConfig changes, state dim, action dim). 'dp-lowdim' is Diffusion Policy's low-dim U-Net to the
+# parameter (65,783,298); 'hipolicy' the HiPolicy shape (strides 1/2/3, L_c 8 → T = 24, A = 14) with CLS fusion,
+# 'hipolicy-nofusion' the same U-Net body without it.
+_PYTORCH_BODY = {"model.size": "paper", "model.step_embed_dim": 256, "encoder.state_encoder": "identity",
+                 "chunk.obs_horizon": 2}
+SHAPES: dict[str, tuple[dict[str, Any], int, int]] = {
+    "dp-lowdim": ({**_PYTORCH_BODY, "chunk.strides": (1,), "chunk.chunk_len": 16}, 20, 2),
+    "hipolicy": ({**_PYTORCH_BODY, "chunk.strides": (1, 2, 3), "chunk.chunk_len": 8}, 20, 14),
+    "hipolicy-nofusion": ({**_PYTORCH_BODY, "chunk.strides": (1, 2, 3), "chunk.chunk_len": 8, "model.fusion": False},
+                          20, 14),
+}
+
+
+class BenchModel(NamedTuple):
+    """One benchmarked model: its row labels (size or shape name, obs type), config changes and dims."""
+
+    size: str
+    obs: str
+    changes: dict
+    state_dim: int
+    action_dim: int
+
+    def policy(self, seed: int = 0, **more) -> "BenchPolicy":
+        base = "paper" if self.size in SHAPES else self.size
+        return make_bench_policy(base, self.obs, seed, self.state_dim, self.action_dim, **{**self.changes, **more})
+
+
+def bench_models(args) -> list[BenchModel]:
+    """``--shapes`` when given (each a ``SHAPES`` entry, state observations), else the ``--sizes`` x ``--obs`` grid."""
+    if getattr(args, "shapes", None):
+        return [BenchModel(s, "state", *SHAPES[s]) for s in args.shapes]
+    return [BenchModel(size, obs, {}, STATE_DIM, ACTION_DIM) for size in args.sizes for obs in args.obs]
+
+
 def device_kind() -> str:
     """``cpu``, ``gpu`` or ``tpu``: the default backend, used in result file names."""
     return jax.default_backend()
@@ -90,14 +126,14 @@ class BenchPolicy(NamedTuple):
     obs: dict[str, jax.Array]
 
 
-def example_obs(cfg: PolicyConfig, batch: int, key: jax.Array) -> dict[str, jax.Array]:
+def example_obs(cfg: PolicyConfig, batch: int, key: jax.Array, state_dim: int = STATE_DIM) -> dict[str, jax.Array]:
     """Random raw observation windows ``{key: (batch, M, L_h, ...)}`` for ``cfg.encoder.obs_type``.
 
-    state ``(.., STATE_DIM)``; image ``(.., S, S, 3)`` in [-1, 1]; point cloud ``(.., P, point_dims)``.
+    state ``(.., state_dim)``; image ``(.., S, S, 3)`` in [-1, 1]; point cloud ``(.., P, point_dims)``.
     """
     m, lh, e = cfg.chunk.num_freqs, cfg.chunk.obs_horizon, cfg.encoder
     k1, k2 = jax.random.split(key)
-    obs = {"state": jax.random.uniform(k1, (batch, m, lh, STATE_DIM))}
+    obs = {"state": jax.random.uniform(k1, (batch, m, lh, state_dim))}
     if e.obs_type == "image":
         obs["image"] = jax.random.uniform(k2, (batch, m, lh, e.image_size, e.image_size, 3), minval=-1.0, maxval=1.0)
     elif e.obs_type == "pointcloud":
@@ -111,9 +147,7 @@ def make_bench_policy(size: str, obs_type: str, seed: int = 0, state_dim: int = 
     of ``state_dim`` / ``action_dim`` features (so raw observations in [0, 1) map to [-1, 1)); ``changes`` go to
     ``bench_config``."""
     cfg = bench_config(size, obs_type, **changes)
-    obs = example_obs(cfg, 1, jax.random.key(seed))
-    if state_dim != STATE_DIM:
-        obs["state"] = jax.random.uniform(jax.random.key(seed), obs["state"].shape[:-1] + (state_dim,))
+    obs = example_obs(cfg, 1, jax.random.key(seed), state_dim)
     params = init_policy_params(cfg, action_dim, obs, jax.random.key(seed))
     rng = np.random.default_rng(seed)
     normalizer = Normalizer.fit({"state": rng.random((256, state_dim), np.float32),
@@ -213,11 +247,13 @@ def compiled_flops(fn: Callable, *args) -> float:
 
 
 def matmul_peak_gflops(n: int | None = None, repeats: int = 10, dtype=jnp.float32) -> dict[str, float]:
-    """Estimated machine peak: the best GFLOP/s of an ``n x n`` matmul (default 2048 on a CPU, 8192 otherwise)."""
+    """Estimated machine peak: the best GFLOP/s of an ``n x n`` matmul (default 2048 on a CPU, 8192 otherwise), with
+    ``dtype`` operands and float32 accumulation (bf16 operands use the BF16 dot-product instructions where XLA
+    has them)."""
     n = n or (2048 if device_kind() == "cpu" else 8192)
     a = jax.random.normal(jax.random.key(0), (n, n), dtype)
     b = jax.random.normal(jax.random.key(1), (n, n), dtype)
-    mm = jax.jit(jnp.matmul)
+    mm = jax.jit(lambda x, y: jax.lax.dot(x, y, preferred_element_type=jnp.float32))
     times, _ = timed_calls(lambda i: mm(a, b), repeats, warmup=2)
     return {"n": n, "dtype": jnp.dtype(dtype).name, "gflops": 2.0 * n**3 / min(times) / 1e9,
             "median_gflops": 2.0 * n**3 / float(np.median(times)) / 1e9}
@@ -268,5 +304,5 @@ def precision_context(precision: str | None):
 
 __all__ = ["ACTION_DIM", "BenchPolicy", "MemoryMonitor", "RESULTS_DIR", "SIZES", "STATE_DIM", "bench_config",
            "compiled_flops", "device_description", "device_kind", "example_obs", "latency_stats",
-           "make_bench_policy", "markdown_table", "matmul_peak_gflops", "param_count", "precision_context",
+           "make_bench_policy", "SHAPES", "BenchModel", "bench_models", "markdown_table", "matmul_peak_gflops", "param_count", "precision_context",
            "timed_calls", "write_results"]

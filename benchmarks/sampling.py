@@ -2,12 +2,15 @@
 
     python -m benchmarks.sampling                      # CPU default: cpu size, state obs, N 1/10/100, < 10 min
     python -m benchmarks.sampling --sizes cpu paper --obs state image pointcloud --ns 1 5 10 100 500   # GPU grid
+    python -m benchmarks.sampling --shapes dp-lowdim hipolicy hipolicy-nofusion --samplers ddpm --ns 1 100
 
 For every (size, obs, sampler, N): median / p90 latency of ``sampling.make_sampler`` (``block_until_ready``, after a
 warm-up call that also compiles), the ratio latency(N) / latency(1), peak memory (device allocator on a GPU, RSS on
 a CPU) and the achieved GFLOP/s. A ``loop`` row times N separate N=1 calls from Python, which is what the one-call
 design (encode once, ``vmap`` over the N draws) replaces. FLOPs per sample-step come from XLA's cost analysis of
-the denoising-loop body; the machine peak is estimated from a large matmul in the same run.
+the denoising-loop body; the machine peaks (fp32, and bf16 operands with fp32 accumulation) are estimated from a
+large matmul in the same run. ``--shapes`` benchmarks the PyTorch comparison's shapes at paper size instead
+(``common.SHAPES``: Diffusion Policy's low-dim U-Net to the parameter, the HiPolicy shape with / without fusion).
 
 The paper reports 105.5 ms at N=1 and 107.5 ms at N=100 (ratio 1.02, +63 MB) for 100 DDPM steps on a GPU.
 """
@@ -22,7 +25,7 @@ import sys
 import jax
 import jax.numpy as jnp
 
-from benchmarks.common import (MemoryMonitor, base_parser, compiled_flops, device_kind, latency_stats, make_bench_policy,
+from benchmarks.common import (MemoryMonitor, base_parser, bench_models, compiled_flops, device_kind, latency_stats,
                                markdown_table, matmul_peak_gflops, param_count, precision_context, timed_calls,
                                write_results)
 from hipolicy_jax.config import InferenceConfig, PolicyConfig, replace
@@ -128,32 +131,35 @@ def main(argv=None) -> dict:
     """Run the benchmark, print its tables, write the JSON; returns the JSON payload."""
     args = parse_args(argv)
     peak = matmul_peak_gflops(args.peak_n)
-    print(f"machine peak (f32 {peak['n']}x{peak['n']} matmul): {peak['gflops']:.1f} GFLOP/s")
+    peak_bf16 = matmul_peak_gflops(args.peak_n, dtype=jnp.bfloat16)
+    print(f"machine peak ({peak['n']}x{peak['n']} matmul): f32 {peak['gflops']:.1f} GFLOP/s, bf16 operands "
+          f"{peak_bf16['gflops']:.1f} GFLOP/s")
     rows, models = [], []
-    for size in args.sizes:
-        for obs in args.obs:
-            policy = make_bench_policy(size, obs)
-            fl = flops_per_sample_step(policy)
-            models.append({"size": size, "obs": obs, "params": param_count(policy.params),
-                           "flops_per_sample_step": fl})
-            print(f"[{size}/{obs}] {param_count(policy.params):,} params, {fl / 1e6:.2f} MFLOP per sample-step")
-            for sampler in args.samplers:
-                steps = sampler_steps(policy.cfg, sampler, args.ddim_steps)
-                base = None
-                for n in args.ns:
-                    for mode in ["vmap"] + (["loop"] if n in args.loop_ns else []):
-                        bench = bench_vmap_row if mode == "vmap" else bench_loop_row
-                        r = bench(policy, sampler, steps, n, args)
-                        if mode == "vmap" and n == min(args.ns):
-                            base = r["median_s"] if n == 1 else None
-                        r.update(size=size, obs=obs, sampler=sampler, steps=steps, n=n, mode=mode,
-                                 ratio_to_n1=r["median_s"] / base if base else math.nan,
-                                 gflops=fl * n * steps / r["median_s"] / 1e9)
-                        r["fraction_of_peak"] = r["gflops"] / peak["gflops"]
-                        rows.append(r)
-                        print(f"  {sampler}{steps:>4} N={n:<4} {mode:<4} median {r['median_s'] * 1e3:9.1f} ms  "
-                              f"p90 {r['p90_s'] * 1e3:9.1f} ms  x{r['ratio_to_n1']:.2f}  "
-                              f"{r['gflops']:6.1f} GFLOP/s  {r['mem_kind']} +{r['mem_delta_mb']:.0f} MB", flush=True)
+    for model in bench_models(args):
+        size, obs = model.size, model.obs
+        policy = model.policy()
+        fl = flops_per_sample_step(policy)
+        models.append({"size": size, "obs": obs, "params": param_count(policy.params),
+                       "flops_per_sample_step": fl})
+        print(f"[{size}/{obs}] {param_count(policy.params):,} params, {fl / 1e6:.2f} MFLOP per sample-step")
+        for sampler in args.samplers:
+            steps = sampler_steps(policy.cfg, sampler, args.ddim_steps)
+            base = None
+            for n in args.ns:
+                for mode in ["vmap"] + (["loop"] if n in args.loop_ns else []):
+                    bench = bench_vmap_row if mode == "vmap" else bench_loop_row
+                    r = bench(policy, sampler, steps, n, args)
+                    if mode == "vmap" and n == min(args.ns):
+                        base = r["median_s"] if n == 1 else None
+                    r.update(size=size, obs=obs, sampler=sampler, steps=steps, n=n, mode=mode,
+                             ratio_to_n1=r["median_s"] / base if base else math.nan,
+                             gflops=fl * n * steps / r["median_s"] / 1e9)
+                    r["fraction_of_peak"] = r["gflops"] / peak["gflops"]
+                    r["fraction_of_bf16_peak"] = r["gflops"] / peak_bf16["gflops"]
+                    rows.append(r)
+                    print(f"  {sampler}{steps:>4} N={n:<4} {mode:<4} median {r['median_s'] * 1e3:9.1f} ms  "
+                          f"p90 {r['p90_s'] * 1e3:9.1f} ms  x{r['ratio_to_n1']:.2f}  "
+                          f"{r['gflops']:6.1f} GFLOP/s  {r['mem_kind']} +{r['mem_delta_mb']:.0f} MB", flush=True)
     for r in rows:  # loop rows: speed-up of the one call over the loop at the same N
         if r["mode"] == "loop":
             match = [v for v in rows if v["mode"] == "vmap" and all(v[k] == r[k] for k in
@@ -161,9 +167,10 @@ def main(argv=None) -> dict:
             r["loop_over_vmap"] = r["median_s"] / match[0]["median_s"] if match else math.nan
     table = markdown_table(
         ["size", "obs", "sampler", "steps", "N", "mode", "median ms", "p90 ms", "calls", "lat(N)/lat(1)",
-         "GFLOP/s", "% peak", "mem +MB", "compile s"],
+         "GFLOP/s", "% f32 peak", "% bf16 peak", "mem +MB", "compile s"],
         [[r["size"], r["obs"], r["sampler"], r["steps"], r["n"], r["mode"], r["median_s"] * 1e3, r["p90_s"] * 1e3,
-          r["calls"], r["ratio_to_n1"], r["gflops"], 100 * r["fraction_of_peak"], r["mem_delta_mb"],
+          r["calls"], r["ratio_to_n1"], r["gflops"], 100 * r["fraction_of_peak"], 100 * r["fraction_of_bf16_peak"],
+          r["mem_delta_mb"],
           r["compile_s"]] for r in rows])
     print(table)
     loops = [r for r in rows if r["mode"] == "loop"]
@@ -173,6 +180,7 @@ def main(argv=None) -> dict:
                                      for r in loops]))
     payload = {"command": "python -m benchmarks.sampling " + " ".join(sys.argv[1:] if argv is None else argv),
                "args": {k: v for k, v in vars(args).items() if k != "out_dir"}, "machine_peak": peak,
+               "machine_peak_bf16": peak_bf16,
                "default_policy_params": default_policy_param_count(), "models": models, "rows": rows,
                "table_md": table}
     path = write_results(NAME, payload, args.out_dir)

@@ -3,22 +3,27 @@
     python -m benchmarks.train_step                              # CPU default: cpu size, state obs, batch 128
     python -m benchmarks.train_step --sizes cpu paper --obs state image pointcloud     # GPU grid
     python -m benchmarks.train_step --obs pointcloud --num-points 128 512 --batch 64   # DP3 point budgets
+    python -m benchmarks.train_step --shapes dp-lowdim hipolicy hipolicy-nofusion   # the PyTorch comparison's shapes
 
 The step is the real one (AdamW + cosine schedule + EMA, the train state donated) on a synthetic normalised batch
 of ``--batch`` windows; the first call's time (trace + compile + one step) and the ``lower().compile()`` time are
-reported separately from the steady-state median.
+reported separately from the steady-state median. FLOPs per step come from XLA's cost analysis of the compiled
+step; GFLOP/s is reported against the machine's fp32 and bf16-operand matmul peaks measured in the same run.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
-from benchmarks.common import (ACTION_DIM, base_parser, example_obs, device_kind, latency_stats, make_bench_policy,
-                               markdown_table, param_count, precision_context, timed_calls, report_rows)
+from benchmarks.common import (ACTION_DIM, STATE_DIM, BenchModel, base_parser, bench_models, device_kind, example_obs,
+                               latency_stats, markdown_table, matmul_peak_gflops, param_count, precision_context,
+                               report_rows, timed_calls)
 from hipolicy_jax.config import TrainConfig
 from hipolicy_jax.training import init_train_state, make_optimizer, make_train_step
 
@@ -39,21 +44,23 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
-def synthetic_batch(cfg, batch: int, key: jax.Array) -> dict:
+def synthetic_batch(cfg, batch: int, key: jax.Array, state_dim: int = STATE_DIM, action_dim: int = ACTION_DIM) -> dict:
     """A normalised training batch ``{"obs": {k: (B, M, L_h, ...)}, "action": (B, M·L_c, A)}`` in [-1, 1]."""
     k1, k2 = jax.random.split(key)
-    obs = jax.tree.map(lambda a: 2.0 * a - 1.0 if a.ndim == 4 else a, example_obs(cfg, batch, k1))
-    action = jax.random.uniform(k2, (batch, cfg.chunk.horizon, ACTION_DIM), minval=-1.0, maxval=1.0)
+    obs = jax.tree.map(lambda a: 2.0 * a - 1.0 if a.ndim == 4 else a, example_obs(cfg, batch, k1, state_dim))
+    action = jax.random.uniform(k2, (batch, cfg.chunk.horizon, action_dim), minval=-1.0, maxval=1.0)
     return {"obs": obs, "action": action}
 
 
-def bench_config_row(size: str, obs: str, args, points: int | None = None) -> dict:
-    """Compile time, first-step time and steady-state step latency of one config (``points``: point-cloud size)."""
-    policy = make_bench_policy(size, obs, **({} if points is None else {"encoder.num_points": points}))
+def bench_config_row(model: BenchModel, args, points: int | None = None, peaks: dict | None = None) -> dict:
+    """Compile time, first-step time, steady-state step latency and FLOPs of one model (``points``: point-cloud
+    size)."""
+    size, obs = model.size, model.obs
+    policy = model.policy(**({} if points is None else {"encoder.num_points": points}))
     train_cfg = TrainConfig(batch_size=args.batch, num_steps=10_000, warmup_steps=10)
     tx = make_optimizer(train_cfg)
     step = make_train_step(policy.net, policy.cfg, train_cfg, tx)
-    batch = synthetic_batch(policy.cfg, args.batch, jax.random.key(1))
+    batch = synthetic_batch(policy.cfg, args.batch, jax.random.key(1), model.state_dim, model.action_dim)
     key = jax.random.key(2)
     holder = {"state": init_train_state(policy.params, tx)}
 
@@ -63,8 +70,11 @@ def bench_config_row(size: str, obs: str, args, points: int | None = None) -> di
 
     with precision_context(args.matmul_precision):
         t0 = time.perf_counter()
-        step.lower(holder["state"], batch, key).compile()
+        compiled = step.lower(holder["state"], batch, key).compile()
         compile_s = time.perf_counter() - t0
+        analysis = compiled.cost_analysis()
+        analysis = (analysis[0] if analysis else {}) if isinstance(analysis, (list, tuple)) else (analysis or {})
+        flops = float(analysis.get("flops", math.nan))
         times, first = timed_calls(one, 0, warmup=1)  # first call: trace + compile (again, jit's cache) + run
         cache = step._cache_size()
         times, _ = timed_calls(one, args.repeats, args.row_budget_s, warmup=0)
@@ -75,27 +85,33 @@ def bench_config_row(size: str, obs: str, args, points: int | None = None) -> di
             **stats,
             "steps_per_s": 1.0 / stats["median_s"], "samples_per_s": args.batch / stats["median_s"],
             "compile_s": compile_s, "first_step_s": first, "retraces": retraces, "final_loss": loss,
-            "loss_finite": bool(np.isfinite(loss))}
+            "loss_finite": bool(np.isfinite(loss)), "flops_per_step": flops,
+            "gflops": flops / stats["median_s"] / 1e9,
+            **{f"fraction_of_{k}_peak": flops / stats["median_s"] / 1e9 / v["gflops"] for k, v in (peaks or {}).items()}}
 
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
+    peaks = {"f32": matmul_peak_gflops(), "bf16": matmul_peak_gflops(dtype=jnp.bfloat16)}
+    print(f"machine peak: f32 {peaks['f32']['gflops']:.1f} GFLOP/s, bf16 operands {peaks['bf16']['gflops']:.1f} "
+          f"GFLOP/s")
     rows = []
-    for size in args.sizes:
-        for obs, points in [(o, p) for o in args.obs for p in (args.num_points if o == "pointcloud" else [None])]:
-            r = bench_config_row(size, obs, args, points)
+    for model in bench_models(args):
+        for points in (args.num_points if model.obs == "pointcloud" else [None]):
+            r = bench_config_row(model, args, points, peaks)
             rows.append(r)
-            name = f"{size}/{obs}" + ("" if points is None else f"/{points} points")
+            name = f"{model.size}/{model.obs}" + ("" if points is None else f"/{points} points")
             print(f"[{name}] batch {r['batch']}: {r['median_s'] * 1e3:.1f} ms/step, {r['steps_per_s']:.2f} "
-                  f"steps/s, {r['samples_per_s']:.0f} samples/s, compile {r['compile_s']:.1f} s, first step "
-                  f"{r['first_step_s']:.1f} s", flush=True)
+                  f"steps/s, {r['samples_per_s']:.0f} samples/s, {r['gflops']:.1f} GFLOP/s, compile "
+                  f"{r['compile_s']:.1f} s, first step {r['first_step_s']:.1f} s", flush=True)
     table = markdown_table(
-        ["size", "obs", "points", "params", "batch", "median ms", "p90 ms", "steps/s", "samples/s", "compile s",
-         "first step s"],
+        ["size", "obs", "points", "params", "batch", "median ms", "p90 ms", "steps/s", "samples/s", "GFLOP/s",
+         "% f32 peak", "% bf16 peak", "compile s", "first step s"],
         [[r["size"], r["obs"], "–" if r["points"] is None else r["points"], f"{r['params']:,}", r["batch"],
-          r["median_s"] * 1e3, r["p90_s"] * 1e3, r["steps_per_s"], r["samples_per_s"], r["compile_s"],
-          r["first_step_s"]] for r in rows])
-    return report_rows(NAME, argv, args, rows, table)
+          r["median_s"] * 1e3, r["p90_s"] * 1e3, r["steps_per_s"], r["samples_per_s"], r["gflops"],
+          100 * r["fraction_of_f32_peak"], 100 * r["fraction_of_bf16_peak"], r["compile_s"], r["first_step_s"]]
+         for r in rows])
+    return report_rows(NAME, argv, args, rows, table, machine_peaks=peaks)
 
 
 if __name__ == "__main__":

@@ -266,3 +266,29 @@ def test_serving_benchmark(tmp_path):
     for r in out["rows"]:
         _finite(r, ["median_ms", "p90_ms", "ratio_to_in_process"])
     assert out["load"]["replies"] == 10 and out["load"]["failures"] == 0
+
+
+def test_pytorch_comparison_shapes():
+    """``--shapes``: dp-lowdim is Diffusion Policy's low-dim U-Net to the parameter; the HiPolicy shape predicts
+    T = 24 steps of A = 14 with and without fusion (fusion only adds parameters)."""
+    import argparse
+
+    import jax
+    import jax.numpy as jnp
+
+    from benchmarks.common import SHAPES, bench_config, bench_models
+    from hipolicy_jax.models.policy_net import init_policy_params, param_count
+
+    models = bench_models(argparse.Namespace(shapes=["dp-lowdim", "hipolicy", "hipolicy-nofusion"]))
+    counts = {}
+    for m in models:
+        cfg = bench_config("paper", "state", **m.changes)
+        obs = {"state": jnp.zeros((1, cfg.chunk.num_freqs, cfg.chunk.obs_horizon, m.state_dim))}
+        counts[m.size] = param_count(jax.eval_shape(lambda: init_policy_params(cfg, m.action_dim, obs,
+                                                                              jax.random.key(0))))
+        assert m.obs == "state" and (m.state_dim, m.action_dim) == SHAPES[m.size][1:]
+    assert counts["dp-lowdim"] == 65_783_298
+    assert bench_config("paper", "state", **SHAPES["hipolicy"][0]).chunk.horizon == 24
+    assert counts["hipolicy"] > counts["hipolicy-nofusion"]
+    grid = bench_models(argparse.Namespace(shapes=None, sizes=["tiny"], obs=["state", "image"]))
+    assert [(m.size, m.obs) for m in grid] == [("tiny", "state"), ("tiny", "image")]
