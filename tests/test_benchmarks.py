@@ -43,6 +43,7 @@ def test_sampling_benchmark(tmp_path):
     _finite(next(r for r in res["rows"] if r["mode"] == "loop"), ["loop_over_vmap"])
 
 
+@pytest.mark.slow
 def test_train_step_benchmark(tmp_path):
     train_step.main(["--sizes", "tiny", "--obs", "state", "pointcloud", "--num-points", "16", "32", "--batch", "8",
                      "--repeats", "2", "--out-dir", str(tmp_path)])
@@ -55,6 +56,7 @@ def test_train_step_benchmark(tmp_path):
         assert row["retraces"] == 0 and row["loss_finite"]
 
 
+@pytest.mark.slow
 def test_rollout_benchmark(tmp_path):
     rollout.main(["--size", "tiny", "--batches", "2", "--num-samples", "2", "--num-steps", "2",
                   "--max-steps", "8", "--repeats", "2", "--out-dir", str(tmp_path)])
@@ -73,6 +75,7 @@ def test_optimisation_benchmark(tmp_path):
     assert row["max_abs_diff"] < 1e-4 and row["retraces"] == 0
 
 
+@pytest.mark.slow
 def test_convolutions_benchmark(tmp_path):
     """Both variants compile and agree (native vs im2col / polyphase) on the tiny U-Net at a short horizon."""
     convolutions.main(["--size", "tiny", "--configs", "DP L_c=8", "--batch", "4", "--num-samples", "2",
@@ -188,8 +191,12 @@ def test_tradeoff_cheapest_and_spearman():
     assert math.isnan(tradeoff.spearman(a, np.ones(5)))
 
 
-@pytest.mark.parametrize("module", [sampling, train_step, rollout, optimisation, convolutions, tradeoff])
+@pytest.mark.parametrize("module", [sampling, train_step, rollout, optimisation, convolutions, tradeoff, "delay",
+                                    "serving"])
 def test_benchmark_flags_parse(module):
+    if isinstance(module, str):
+        import importlib
+        module = importlib.import_module(f"benchmarks.{module}")
     assert module.parse_args([]).out_dir is None
 
 
@@ -256,6 +263,7 @@ def test_delay_benchmark(tmp_path):
     assert [r["eval_s"] for r in again["rows"]] == [r["eval_s"] for r in rows]  # resumed, not re-run
 
 
+@pytest.mark.slow
 def test_serving_benchmark(tmp_path):
     """The serving benchmark on a tiny run: three single-call paths and a small load test, all replies received."""
     from benchmarks import serving

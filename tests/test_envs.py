@@ -51,7 +51,8 @@ def test_jit_reset_step_single_instance(task):
     assert np.isfinite(np.asarray(state.obs["state"])).all()
 
 
-@pytest.mark.parametrize("task", envs.TASKS)
+@pytest.mark.parametrize("task", [t if t == "press_button" else pytest.param(t, marks=pytest.mark.slow)
+                                  for t in envs.TASKS])
 def test_expert_rollout(task):
     run = demos.expert_rollout(task, N_EXPERT)
     env = run.env
@@ -130,6 +131,7 @@ def test_collect_demos_dataset_round_trip(tmp_path):
     np.testing.assert_allclose(loaded.data["action"], np.concatenate([e["action"] for e in episodes]))
 
 
+@pytest.mark.slow
 def test_collect_cli_refuses_overwrite(tmp_path):
     from experiments import collect
 

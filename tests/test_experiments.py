@@ -122,6 +122,7 @@ def test_one_evaluator_two_checkpoints_one_compile(tiny):
     assert other.traces == 1 and ev.traces == 1
 
 
+@pytest.mark.slow
 def test_execution_strategies_in_closed_loop(tiny, tmp_path):
     """AAC from experiments.evaluate (decisions execute 1..L_c actions) and temporal ensembling through an
     Evaluator (one decision and one action per control step)."""
@@ -143,22 +144,22 @@ def test_execution_strategies_in_closed_loop(tiny, tmp_path):
     np.testing.assert_array_equal(np.asarray(res.start)[0, :int(res.steps[0])], np.arange(int(res.steps[0])))
 
 
-def test_asynchronous_execution_in_closed_loop(tiny, tmp_path):
-    """Delay d = 2 with prefix inpainting from experiments.evaluate: every decision executes L_c − d = 6 actions and
-    the next one starts when 2 of them remain."""
+def test_asynchronous_execution_in_closed_loop(tiny):
+    """Delay d = 2 with prefix inpainting (flags of experiments.evaluate): every decision executes L_c − d = 6 actions
+    and the next one starts when 2 of them remain."""
     _, run = tiny
-    report = evaluate.main(parse_with_run_inference(evaluate.EvaluateArgs, [
-        "--checkpoint", run, "--episodes", "2", "--inference.delay", "2",
-        "--inference.handover", "inpaint", "--video", "none", "--out", str(tmp_path / "delay")]))
-    assert report["inference"]["delay"] == 2 and report["inference"]["handover"] == "inpaint"
-    s = report["with_eg"]
-    assert 1.0 <= s["mean_actions_per_decision"] <= 6.0 + 1e-6  # only the last decision may stop early
+    args = parse_with_run_inference(evaluate.EvaluateArgs, ["--checkpoint", run, "--inference.delay", "2",
+                                                            "--inference.handover", "inpaint"])
+    assert args.inference.delay == 2 and args.inference.handover == "inpaint"
+    assert args.inference.num_samples == SMOKE.inference.num_samples  # the rest from the run's inference.json
     last = load_run(run)
-    ev = make_evaluator(last, dataclasses.replace(SMOKE.inference, delay=2, handover="inpaint"), max_steps=24)
+    ev = make_evaluator(last, args.inference, max_steps=24)
     res = ev.evaluate(last.policy.params, last.policy.normalizer, 2, jax.random.key(0))
     for e in range(2):
         n = int(np.asarray(res.valid)[e].sum())
         np.testing.assert_array_equal(np.asarray(res.start)[e, :n], 6 * np.arange(n))
+        executed = np.asarray(res.executed)[e, :n]
+        assert (executed[:-1] == 6).all() and 1 <= executed[-1] <= 6  # only the last may stop early
 
 
 def test_calibrate_demos_reproduces_training_calibration(tiny, tmp_path, capsys):
@@ -179,6 +180,7 @@ def test_calibrate_demos_reproduces_training_calibration(tiny, tmp_path, capsys)
     assert "th1=" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_calibrate_rollouts(tiny, tmp_path):
     _, run = tiny
     args = parse_with_run_inference(calibrate.CalibrateArgs, [

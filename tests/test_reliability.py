@@ -97,6 +97,7 @@ def test_one_owner_per_run_directory(tmp_path):
     assert not (tmp_path / ".lock").exists()  # released
 
 
+@pytest.mark.slow
 def test_sigterm_checkpoints_the_current_step_and_resume_is_exact(tmp_path):
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     full = subprocess.run([sys.executable, WORKER, str(tmp_path / "full"), "--steps", "16"], env=env,
@@ -126,6 +127,7 @@ def test_sigterm_checkpoints_the_current_step_and_resume_is_exact(tmp_path):
     np.testing.assert_allclose([got[s] for s in range(1, 17)], [want[s] for s in range(1, 17)], rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_checkpoint_write_failure_is_one_line_and_keeps_the_last_checkpoint(dataset, tmp_path, monkeypatch):
     full = fit(tiny_cfg(), TRAIN, dataset, str(tmp_path / "full"), progress=False, tensorboard=False)
     save = checkpoint.Checkpointer.save

@@ -39,6 +39,7 @@ def _step_losses(out) -> dict[int, float]:
     return {r["step"]: r["loss"] for r in rows if r["kind"] == "train"}
 
 
+@pytest.mark.slow
 def test_four_devices_match_one_device(tmp_path):
     four = _run(tmp_path / "four", "--steps", "6", "--devices", "4", devices=4)
     one = _run(tmp_path / "one", "--steps", "6", "--devices", "1", devices=4)
@@ -46,6 +47,7 @@ def test_four_devices_match_one_device(tmp_path):
     np.testing.assert_allclose(four["losses"], one["losses"], rtol=1e-4, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_kill_9_then_rerun_resumes_and_matches_uninterrupted(tmp_path):
     full = _run(tmp_path / "full", "--steps", "16")
     out = tmp_path / "killed"
@@ -68,6 +70,7 @@ def test_kill_9_then_rerun_resumes_and_matches_uninterrupted(tmp_path):
     assert full["start"] == 0
 
 
+@pytest.mark.slow
 def test_partial_write_and_corrupted_checkpoint_are_reported_and_skipped(tmp_path, capsys):
     ds = SequenceDataset(bimodal_buffer(), tiny_cfg().chunk, obs_keys=("state",))
     train_cfg = TrainConfig(batch_size=16, num_steps=12, warmup_steps=2, log_every=1, ckpt_every=4)

@@ -103,6 +103,7 @@ def test_resume_reproduces_uninterrupted_losses(dataset, tmp_path):
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6), rest.state.params, full.state.params)
 
 
+@pytest.mark.slow
 def test_resume_refuses_a_different_config(dataset, tmp_path):
     train_cfg = TrainConfig(batch_size=32, num_steps=4, warmup_steps=1, log_every=2, ckpt_every=2)
     fit(tiny_cfg(), train_cfg, dataset, str(tmp_path), progress=False, tensorboard=False)
@@ -112,6 +113,7 @@ def test_resume_refuses_a_different_config(dataset, tmp_path):
         fit(other, train_cfg, dataset, str(tmp_path), progress=False, tensorboard=False)
 
 
+@pytest.mark.slow
 def test_resume_accepts_checkpoints_of_an_older_config_layout(dataset, tmp_path):
     """Checkpoints whose meta still holds the inference fields older versions kept in the policy config
     (``sampling``, ``diffusion.sampler``) resume: inference settings are not part of a run's identity."""
