@@ -93,7 +93,14 @@ def variant_name(changes: tuple[tuple[str, Any], ...]) -> str:
 # Run-level changes of a demo regime (keys: "episodes" = demos, "train.<field>"), per task. R100 is the budgets' own
 # 100 demos; Rlow comes from results/PROTOCOL.md's DP pilot (python -m experiments.paper pilot) and is filled in
 # here when the pilot has chosen it.
-REGIMES: dict[str, dict[str, dict[str, Any]]] = {"r100": {}, "rlow": {}}
+REGIMES: dict[str, dict[str, dict[str, Any]]] = {
+    "r100": {},
+    "rlow": {  # the DP pilot of 2026-12-01 (results/PROTOCOL.md): DP success at these demo counts
+        "press_button": {"episodes": 25},  # 79 %
+        "stack_cubes": {"episodes": 50},  # 26 %
+        "latch_door": {"episodes": 12},  # 98 %: no candidate in [15, 85] %, the one closest to 50 % (rule 4)
+    },
+}
 
 
 def regime_changes(regime: str, task: str) -> dict[str, Any]:
