@@ -48,8 +48,9 @@ from tqdm.auto import tqdm
 from hipolicy_jax.config import PolicyConfig
 from hipolicy_jax.envs import TASK_PRECISE
 from hipolicy_jax.evaluation import stats
-from hipolicy_jax.runs.budgets import BUDGETS, DP, regime_changes, run_config
-from hipolicy_jax.runs.campaign import Campaign, Column, choose_low_regime, pilot_candidates
+from hipolicy_jax.runs.budgets import BUDGETS, DP, REGIMES, regime_changes, run_config
+from hipolicy_jax.runs.campaign import (README_BEGIN, README_END, Campaign, Column, choose_low_regime, pilot_candidates,
+                                        readme_section, update_readme)
 from hipolicy_jax.runs.store import write_json
 from hipolicy_jax.runs.train import RunConfig
 
@@ -107,6 +108,7 @@ class CampaignArgs(PaperArgs):
     episodes: int | None = 100
     regimes: tuple[Literal["r100", "rlow"], ...] = ("r100", "rlow")
     obs_types: tuple[ObsName, ...] = ("state",)  # main table in R100; add pointcloud for the DP3 columns
+    readme: str = "README.md"  # its campaign section (between the markers) is rewritten from the tables; '' = leave it
 
 
 @dataclasses.dataclass(frozen=True)
@@ -737,7 +739,11 @@ def campaign_table(args: "CampaignArgs") -> str:
     for task, col, seed, changes in bar:
         bar.set_postfix_str(f"{task} seed {seed} {col.label} {dict(changes) or 'r100'}")
         camp.evaluate(task, col, seed, dict(changes))
-    paths = [BUILDERS[table_name(t)](dataclasses.replace(t, from_records=True)) for t in tables]
+    paths = []
+    for t in tables:  # a regime's table holds the tasks the pilot has chosen its demos for
+        ready = tuple(task for task in t.tasks if t.regime == "r100" or task in REGIMES[t.regime])
+        if ready:
+            paths.append(BUILDERS[table_name(t)](dataclasses.replace(t, tasks=ready, from_records=True)))
     lines = [f"# Campaign ({args.budget})", "", f"Command: `{command_line(args)}`", "",
              f"{len(jobs)} evaluations; tables:", ""] + [f"- [{os.path.basename(p)}]({os.path.basename(p)})"
                                                            for p in paths]
@@ -746,6 +752,15 @@ def campaign_table(args: "CampaignArgs") -> str:
     index = os.path.join(args.results, "campaign.md")
     with open(index, "w") as f:
         f.write("\n".join(lines) + "\n")
+    if args.readme:
+        readme_dir = os.path.dirname(os.path.abspath(args.readme))
+        section = readme_section(paths, readme_dir)
+        if skipped:
+            section += "\n\nNot run yet: " + ", ".join(sorted(skipped)) + "."
+        if update_readme(args.readme, section):
+            print(f"updated the campaign tables in {args.readme}")
+        else:
+            print(f"{args.readme}: no campaign markers ({README_BEGIN!r} ... {README_END!r}); README left as is")
     return index
 
 

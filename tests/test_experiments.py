@@ -406,3 +406,26 @@ def test_campaign_follows_the_protocol():
     dp, hip = paper.main_columns(main)
     assert paper.column_seeds(main, dp) == (0, 1, 2, 3, 4) and paper.column_seeds(main, hip) == (0, 1, 2)
     assert paper.parse_args(shlex.split(paper.command_line(args))[3:]) == args
+
+
+def test_readme_section_from_table_files(tmp_path):
+    """The README's campaign section: each table's markdown one heading level down, named by its file, with its plot;
+    only the text between the markers is replaced."""
+    from hipolicy_jax.runs.campaign import README_BEGIN, README_END, readme_section, update_readme
+    results = tmp_path / "results"
+    results.mkdir()
+    (results / "main_rlow.md").write_text("# Main results\n\n- Cost: 1.0 CPU-hours\n\n| a |\n|---|\n| 1 |\n")
+    (results / "main_rlow.png").write_bytes(b"png")
+    (results / "ablation_rlow.md").write_text("# Ablation\n\n| b |\n")
+    section = readme_section([str(results / "main_rlow.md"), str(results / "ablation_rlow.md")], str(tmp_path))
+    assert section.startswith("### Main results — `results/main_rlow.md`")
+    assert "![main_rlow.png](results/main_rlow.png)" in section and "ablation_rlow.png" not in section
+    readme = tmp_path / "README.md"
+    readme.write_text(f"intro\n{README_BEGIN}\nold\n{README_END}\nafter\n")
+    assert update_readme(str(readme), section)
+    text = readme.read_text()
+    assert text.startswith("intro\n") and text.endswith(f"{README_END}\nafter\n") and "old" not in text
+    assert "| 1 |" in text and "- Cost: 1.0 CPU-hours" in text
+    other = tmp_path / "OTHER.md"
+    other.write_text("no markers\n")
+    assert not update_readme(str(other), section) and other.read_text() == "no markers\n"

@@ -146,6 +146,43 @@ class Campaign:
         return evaluation
 
 
+README_BEGIN = "<!-- campaign tables: written by `python -m experiments.paper campaign` from results/*.md -->"
+README_END = "<!-- end of campaign tables -->"
+
+
+def readme_section(table_paths: list[str], readme_dir: str) -> str:
+    """The README's campaign section from the tables' markdown files: each table's title (one level below the
+    README's results heading), its notes (with the cost line), the table and its plot; links relative to the
+    README."""
+    parts = []
+    for md in table_paths:
+        with open(md) as f:
+            text = f.read().strip()
+        lines = text.splitlines()
+        rel = os.path.relpath(md, readme_dir)
+        if lines and lines[0].startswith("# "):
+            lines[0] = f"### {lines[0][2:]} — `{rel}`"
+        png = md[:-3] + ".png"
+        if os.path.exists(png):
+            lines += ["", f"![{os.path.basename(png)}]({os.path.relpath(png, readme_dir)})"]
+        parts.append("\n".join(lines))
+    return "\n\n".join(parts)
+
+
+def update_readme(readme: str, section: str) -> bool:
+    """Replace what stands between ``README_BEGIN`` and ``README_END`` in ``readme`` with ``section``; False (and
+    nothing written) when the markers are missing."""
+    with open(readme) as f:
+        text = f.read()
+    start, end = text.find(README_BEGIN), text.find(README_END)
+    if start < 0 or end < start:
+        return False
+    new = text[:start + len(README_BEGIN)] + "\n\n" + section.strip() + "\n\n" + text[end:]
+    with open(readme, "w") as f:
+        f.write(new)
+    return True
+
+
 def pilot_candidates(dp_at_100: float) -> list[dict]:
     """The protocol's Rlow candidates after DP's success at 100 demos: fewer demos (50, 25, 12) unless DP is at the
     floor (< 15 %), then more training steps (4000, 8000) at 100 demos."""
@@ -163,5 +200,5 @@ def choose_low_regime(tried: list[tuple[dict, float]], low: float = 0.15, high: 
     return min(tried, key=lambda cs: abs(cs[1] - (low + high) / 2))[0], False
 
 
-__all__ = ["Campaign", "Column", "choose_low_regime", "evaluation_key", "pilot_candidates", "record_path",
-           "run_summary"]
+__all__ = ["README_BEGIN", "README_END", "Campaign", "Column", "choose_low_regime", "evaluation_key",
+           "pilot_candidates", "readme_section", "record_path", "run_summary", "update_readme"]
