@@ -19,7 +19,9 @@ SECTIONS = (("sampling", "One-call N-sample latency (the paper's sample-times ta
             ("convolutions", "Short-sequence U-Net convolutions, before / after (interleaved, one run)"),
             ("train_step", "Train-step throughput"),
             ("rollout", "Closed-loop rollout throughput (MJX, policy in the loop)"),
-            ("tradeoff", "Latency–success trade-off"))
+            ("tradeoff", "Latency–success trade-off"),
+            ("delay", "Asynchronous execution: success under inference delay"),
+            ("serving", "Policy serving: in-process, exported, websocket round trip"))
 
 
 def render(device: str, notes: str = "", results_dir: str = RESULTS_DIR) -> str:
@@ -37,8 +39,10 @@ def render(device: str, notes: str = "", results_dir: str = RESULTS_DIR) -> str:
                 f"(jax {res['jax_version']}, {res['time']})", ""]
         if name == "sampling":
             peak = res["machine_peak"]
-            out += [f"Machine peak estimate: {peak['gflops']:.1f} GFLOP/s ({peak['dtype']} {peak['n']}² matmul). "
-                    f"Default `PolicyConfig()` policy: {res['default_policy_params']:,} parameters.", ""]
+            bf16 = res.get("machine_peak_bf16")
+            out += [f"Machine peak estimate: {peak['gflops']:.1f} GFLOP/s ({peak['dtype']} {peak['n']}² matmul)"
+                    + (f", {bf16['gflops']:.1f} GFLOP/s with bf16 operands (fp32 accumulation)" if bf16 else "")
+                    + f". Default `PolicyConfig()` policy: {res['default_policy_params']:,} parameters.", ""]
             out += [f"- {m['size']}/{m['obs']}: {m['params']:,} parameters, "
                     f"{m['flops_per_sample_step'] / 1e6:.2f} MFLOP per sample-step" for m in res["models"]] + [""]
         if name == "tradeoff":
@@ -48,6 +52,8 @@ def render(device: str, notes: str = "", results_dir: str = RESULTS_DIR) -> str:
         out += [res["table_md"], ""]
         if name == "tradeoff" and res.get("png"):
             out += [f"![Decision latency vs closed-loop success]({res['png']})", ""]
+        if name == "delay":
+            out += [f"![Success and steps vs inference delay]({name}_{device}.png)", ""]
     return "\n".join(out)
 
 
