@@ -387,7 +387,7 @@ def test_train_args_vision_policies_read_proprioception_only():
     assert parse("--policy.encoder.obs-type", "image", "--privileged-state") is None
     assert parse("--policy.encoder.obs-type", "image", "--policy.encoder.state-dims", "7") == 7
     assert paper.train_args(paper.MainArgs(), TASK, "pointcloud", (), 0).policy.encoder.state_dims == PROPRIO_DIM
-    assert paper.train_args(paper.MainArgs(), TASK, "pointcloud", (), 0).policy.encoder.num_points == 128
+    assert paper.train_args(paper.MainArgs(), TASK, "pointcloud", (), 0).policy.encoder.num_points == 256
 
 
 def test_campaign_follows_the_protocol():

@@ -60,10 +60,10 @@ OBS_CHANGES: dict[str, dict[str, Any]] = {
     "pointcloud": {"encoder.obs_type": "pointcloud", "encoder.state_dims": PROPRIO_DIM,
                    "encoder.point_sampling": "fps", "diffusion.prediction_type": "sample"},
 }
-# Changes of an observation type on one budget. On the cpu budget DP3 sees 128 points: a point-cloud train step at
-# batch 64 takes 0.43 s with 128 points, 1.51 s with 512 on 2 cores (benchmarks/results/train_step_cpu.json);
-# press_button's camera view holds ~160 points in the crop box.
-BUDGET_OBS_CHANGES: dict[tuple[str, str], dict[str, Any]] = {("cpu", "pointcloud"): {"encoder.num_points": 128}}
+# Changes of an observation type on one budget. On the cpu budget DP3 sees 256 farthest-point-sampled points, the
+# largest count whose DP3+HiPolicy run trains in <= 30 min on 2 cores (results/PROTOCOL.md: a train step at batch 64
+# takes 1.38 s with 512 points, 1.00 s with 384, 0.71 s with 256; results/dp3_point_count_train_step.json).
+BUDGET_OBS_CHANGES: dict[tuple[str, str], dict[str, Any]] = {("cpu", "pointcloud"): {"encoder.num_points": 256}}
 
 DP = (("chunk.strides", (1,)),)  # single frequency: Diffusion Policy
 
