@@ -403,8 +403,10 @@ def test_campaign_follows_the_protocol():
                    ("hparams", "rlow", two)]
     assert all(t.episodes == 100 and t.baseline_seeds == (3, 4) for t in tables)
     main = tables[0]
-    dp, hip = paper.main_columns(main)
+    dp, hip, dp3, dp3_hip = paper.main_columns(main)  # the DP3 columns are part of the protocol's main table
+    assert dp3.obs_type == dp3_hip.obs_type == "pointcloud"
     assert paper.column_seeds(main, dp) == (0, 1, 2, 3, 4) and paper.column_seeds(main, hip) == (0, 1, 2)
+    assert paper.column_seeds(main, dp3) == paper.column_seeds(main, dp3_hip) == (0, 1, 2)  # > 5 min a run
     assert paper.parse_args(shlex.split(paper.command_line(args))[3:]) == args
 
 
