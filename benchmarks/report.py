@@ -49,6 +49,8 @@ def render(device: str, notes: str = "", results_dir: str = RESULTS_DIR) -> str:
             cheapest = res.get("cheapest_within_3_points")
             out += [res["note"], ""] + ([f"**{cheapest['summary'][0].upper()}{cheapest['summary'][1:]}.**", ""]
                                         if cheapest else [])
+        elif res.get("note"):
+            out += [res["note"], ""]
         out += [res["table_md"], ""]
         if name == "tradeoff" and res.get("png"):
             out += [f"![Decision latency vs closed-loop success]({res['png']})", ""]
