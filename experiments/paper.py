@@ -219,8 +219,9 @@ def collect(args: PaperArgs, columns: list[Column]) -> list[dict]:
             missing.append(f"{task} seed {seed} {col.label}")
             continue
         records.append(_table_record(camp, task, col, seed, regime_changes(args.regime, task), evaluation))
+        steps = evaluation["mean_steps_success"]  # None (NaN in the record) when no episode succeeded
         tqdm.write(f"[paper] {task} seed {seed} {col.label}: success {evaluation['success_rate']:.2f}, steps "
-                   f"(successful) {evaluation['mean_steps_success']:.1f}")
+                   f"(successful) {'–' if steps is None else f'{steps:.1f}'}")
     if missing:
         print(f"[paper] {len(missing)} evaluations have no record under {args.records} (shown as '–'): "
               + "; ".join(missing[:8]) + (" ..." if len(missing) > 8 else ""), flush=True)
