@@ -136,6 +136,7 @@ def _tradeoff_row_ok(r: dict, closed_loop: bool):
         assert r["closed_loop"].startswith("not run: batched decision ~") and r["closed_loop"].endswith("> 1e-09 s")
 
 
+@pytest.mark.slow
 def test_tradeoff_benchmark(tmp_path):
     """A tiny diffusion run, N = 2 and N = 3 (the reference setting): latency and open loop measured, the closed
     loops skipped by a tiny --closed-loop-limit-s (null success); a second call resumes every row as is."""

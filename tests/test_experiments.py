@@ -87,6 +87,7 @@ def test_evaluate_writes_json_trace_and_video(tiny):
     assert frames.shape == (saved["with_eg"]["steps"][saved["video_episode"]] + 1, 48, 64, 3)
 
 
+@pytest.mark.slow
 def test_evaluate_checkpoints_dir_and_threshold_override(tiny, tmp_path):
     _, run = tiny
     # inner thresholds above any entropy: entropy guidance picks stride 1 everywhere, like w/o EG
