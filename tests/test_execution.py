@@ -90,6 +90,9 @@ def test_delayed_chunk_executes_the_committed_actions_then_the_new_chunk_from_d(
     """Asynchronous execution, d = 2, L_c = 4: the first decision runs C[0:2] and commits C[2:4]; every later one
     runs the committed pair, then nothing more of its own chunk (L_c − d = 2), and commits its C[2:4]."""
     chunk = ChunkConfig(strides=(1,), chunk_len=4)
+    # d = 0 is synchronous execution: the plain chunk strategy, the same code path as without the setting
+    assert execution.make_execution(InferenceConfig(delay=0)) == execution.make_execution(InferenceConfig())
+    assert isinstance(execution.make_execution(InferenceConfig(delay=0, handover="inpaint")), execution.ChunkExecution)
     ex = execution.make_execution(InferenceConfig(delay=2))
     assert isinstance(ex, execution.DelayedChunk) and ex.min_actions(chunk) == 2 and ex.prefix(None) is None
     state = ex.init(chunk, 1)
