@@ -45,12 +45,15 @@ SIZES: dict[str, dict[str, Any]] = {
 # kernel 5, a 256-dim step embedding) with the raw observation window as the condition (identity state encoder):
 # name -> (PolicyConfig changes, state dim, action dim). 'dp-lowdim' is Diffusion Policy's low-dim U-Net to the
 # parameter (65,783,298); 'hipolicy' the HiPolicy shape (strides 1/2/3, L_c 8 → T = 24, A = 14) with CLS fusion,
-# 'hipolicy-nofusion' the same U-Net body without it.
+# 'hipolicy-nofusion' the same U-Net body without it; 'hipolicy-lightfusion' with the lighter fusion (segment
+# tokens projected to 256 features before the attention, ``model.fusion_token_dim``: a model change).
 _PYTORCH_BODY = {"model.size": "paper", "model.step_embed_dim": 256, "encoder.state_encoder": "identity",
                  "chunk.obs_horizon": 2}
 SHAPES: dict[str, tuple[dict[str, Any], int, int]] = {
     "dp-lowdim": ({**_PYTORCH_BODY, "chunk.strides": (1,), "chunk.chunk_len": 16}, 20, 2),
     "hipolicy": ({**_PYTORCH_BODY, "chunk.strides": (1, 2, 3), "chunk.chunk_len": 8}, 20, 14),
+    "hipolicy-lightfusion": ({**_PYTORCH_BODY, "chunk.strides": (1, 2, 3), "chunk.chunk_len": 8,
+                              "model.fusion_token_dim": 256}, 20, 14),
     "hipolicy-nofusion": ({**_PYTORCH_BODY, "chunk.strides": (1, 2, 3), "chunk.chunk_len": 8, "model.fusion": False},
                           20, 14),
 }
@@ -65,6 +68,11 @@ class BenchModel(NamedTuple):
     state_dim: int
     action_dim: int
 
+    @property
+    def dtype(self) -> str:
+        """The U-Net's ``model.compute_dtype`` of this row."""
+        return self.changes.get("model.compute_dtype", "float32")
+
     def policy(self, seed: int = 0, **more) -> "BenchPolicy":
         base = "paper" if self.size in SHAPES else self.size
         return make_bench_policy(base, self.obs, seed, self.state_dim, self.action_dim, **{**self.changes, **more})
@@ -73,8 +81,11 @@ class BenchModel(NamedTuple):
 def bench_models(args) -> list[BenchModel]:
     """``--shapes`` when given (each a ``SHAPES`` entry, state observations), else the ``--sizes`` x ``--obs`` grid."""
     if getattr(args, "shapes", None):
-        return [BenchModel(s, "state", *SHAPES[s]) for s in args.shapes]
-    return [BenchModel(size, obs, {}, STATE_DIM, ACTION_DIM) for size in args.sizes for obs in args.obs]
+        models = [BenchModel(s, "state", *SHAPES[s]) for s in args.shapes]
+    else:
+        models = [BenchModel(size, obs, {}, STATE_DIM, ACTION_DIM) for size in args.sizes for obs in args.obs]
+    dtypes = getattr(args, "compute_dtypes", None) or ["float32"]
+    return [m._replace(changes={**m.changes, "model.compute_dtype": dt}) for m in models for dt in dtypes]
 
 
 def device_kind() -> str:
@@ -93,6 +104,10 @@ def base_parser(name: str, doc: str | None, *, grid: bool = False) -> argparse.A
                        choices=["tiny", "cpu", "paper"])
         p.add_argument("--obs", nargs="+", default=["state"] if cpu else ["state", "image", "pointcloud"],
                        choices=["state", "image", "pointcloud"])
+        p.add_argument("--shapes", nargs="+", default=None, choices=sorted(SHAPES),
+                       help="the PyTorch comparison's paper-size shapes instead of the --sizes x --obs grid")
+        p.add_argument("--compute-dtypes", nargs="+", default=["float32"], choices=["float32", "bfloat16"],
+                       help="model.compute_dtype per row (bf16 convolution / attention operands, fp32 accumulation)")
     p.add_argument("--matmul-precision", default="default",
                    help="jax.default_matmul_precision, e.g. 'bfloat16' (bf16 matmuls on a GPU)")
     p.add_argument("--out-dir", default=None, help="where the JSON goes (default benchmarks/results)")

@@ -139,9 +139,9 @@ def main(argv=None) -> dict:
         size, obs = model.size, model.obs
         policy = model.policy()
         fl = flops_per_sample_step(policy)
-        models.append({"size": size, "obs": obs, "params": param_count(policy.params),
+        models.append({"size": size, "obs": obs, "dtype": model.dtype, "params": param_count(policy.params),
                        "flops_per_sample_step": fl})
-        print(f"[{size}/{obs}] {param_count(policy.params):,} params, {fl / 1e6:.2f} MFLOP per sample-step")
+        print(f"[{size}/{obs}/{model.dtype}] {param_count(policy.params):,} params, {fl / 1e6:.2f} MFLOP per sample-step")
         for sampler in args.samplers:
             steps = sampler_steps(policy.cfg, sampler, args.ddim_steps)
             base = None
@@ -151,7 +151,7 @@ def main(argv=None) -> dict:
                     r = bench(policy, sampler, steps, n, args)
                     if mode == "vmap" and n == min(args.ns):
                         base = r["median_s"] if n == 1 else None
-                    r.update(size=size, obs=obs, sampler=sampler, steps=steps, n=n, mode=mode,
+                    r.update(size=size, obs=obs, dtype=model.dtype, sampler=sampler, steps=steps, n=n, mode=mode,
                              ratio_to_n1=r["median_s"] / base if base else math.nan,
                              gflops=fl * n * steps / r["median_s"] / 1e9)
                     r["fraction_of_peak"] = r["gflops"] / peak["gflops"]
@@ -163,20 +163,20 @@ def main(argv=None) -> dict:
     for r in rows:  # loop rows: speed-up of the one call over the loop at the same N
         if r["mode"] == "loop":
             match = [v for v in rows if v["mode"] == "vmap" and all(v[k] == r[k] for k in
-                                                                     ("size", "obs", "sampler", "n"))]
+                                                                     ("size", "obs", "dtype", "sampler", "n"))]
             r["loop_over_vmap"] = r["median_s"] / match[0]["median_s"] if match else math.nan
     table = markdown_table(
-        ["size", "obs", "sampler", "steps", "N", "mode", "median ms", "p90 ms", "calls", "lat(N)/lat(1)",
+        ["size", "obs", "dtype", "sampler", "steps", "N", "mode", "median ms", "p90 ms", "calls", "lat(N)/lat(1)",
          "GFLOP/s", "% f32 peak", "% bf16 peak", "mem +MB", "compile s"],
-        [[r["size"], r["obs"], r["sampler"], r["steps"], r["n"], r["mode"], r["median_s"] * 1e3, r["p90_s"] * 1e3,
+        [[r["size"], r["obs"], r["dtype"], r["sampler"], r["steps"], r["n"], r["mode"], r["median_s"] * 1e3, r["p90_s"] * 1e3,
           r["calls"], r["ratio_to_n1"], r["gflops"], 100 * r["fraction_of_peak"], 100 * r["fraction_of_bf16_peak"],
           r["mem_delta_mb"],
           r["compile_s"]] for r in rows])
     print(table)
     loops = [r for r in rows if r["mode"] == "loop"]
     if loops:
-        print("\n" + markdown_table(["size", "obs", "sampler", "N", "loop / one call"],
-                                    [[r["size"], r["obs"], r["sampler"], r["n"], r["loop_over_vmap"]]
+        print("\n" + markdown_table(["size", "obs", "dtype", "sampler", "N", "loop / one call"],
+                                    [[r["size"], r["obs"], r["dtype"], r["sampler"], r["n"], r["loop_over_vmap"]]
                                      for r in loops]))
     payload = {"command": "python -m benchmarks.sampling " + " ".join(sys.argv[1:] if argv is None else argv),
                "args": {k: v for k, v in vars(args).items() if k != "out_dir"}, "machine_peak": peak,

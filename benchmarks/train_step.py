@@ -81,7 +81,7 @@ def bench_config_row(model: BenchModel, args, points: int | None = None, peaks: 
         retraces = step._cache_size() - cache
     stats = latency_stats(times)
     loss = float(one(0))
-    return {"size": size, "obs": obs, "points": points, "batch": args.batch, "params": param_count(policy.params),
+    return {"size": size, "obs": obs, "dtype": model.dtype, "points": points, "batch": args.batch, "params": param_count(policy.params),
             **stats,
             "steps_per_s": 1.0 / stats["median_s"], "samples_per_s": args.batch / stats["median_s"],
             "compile_s": compile_s, "first_step_s": first, "retraces": retraces, "final_loss": loss,
@@ -100,14 +100,14 @@ def main(argv=None) -> dict:
         for points in (args.num_points if model.obs == "pointcloud" else [None]):
             r = bench_config_row(model, args, points, peaks)
             rows.append(r)
-            name = f"{model.size}/{model.obs}" + ("" if points is None else f"/{points} points")
+            name = f"{model.size}/{model.obs}/{model.dtype}" + ("" if points is None else f"/{points} points")
             print(f"[{name}] batch {r['batch']}: {r['median_s'] * 1e3:.1f} ms/step, {r['steps_per_s']:.2f} "
                   f"steps/s, {r['samples_per_s']:.0f} samples/s, {r['gflops']:.1f} GFLOP/s, compile "
                   f"{r['compile_s']:.1f} s, first step {r['first_step_s']:.1f} s", flush=True)
     table = markdown_table(
-        ["size", "obs", "points", "params", "batch", "median ms", "p90 ms", "steps/s", "samples/s", "GFLOP/s",
+        ["size", "obs", "dtype", "points", "params", "batch", "median ms", "p90 ms", "steps/s", "samples/s", "GFLOP/s",
          "% f32 peak", "% bf16 peak", "compile s", "first step s"],
-        [[r["size"], r["obs"], "–" if r["points"] is None else r["points"], f"{r['params']:,}", r["batch"],
+        [[r["size"], r["obs"], r["dtype"], "–" if r["points"] is None else r["points"], f"{r['params']:,}", r["batch"],
           r["median_s"] * 1e3, r["p90_s"] * 1e3, r["steps_per_s"], r["samples_per_s"], r["gflops"],
           100 * r["fraction_of_f32_peak"], 100 * r["fraction_of_bf16_peak"], r["compile_s"], r["first_step_s"]]
          for r in rows])

@@ -27,7 +27,7 @@ from typing import Literal
 from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.runs.cli import run_main
 from hipolicy_jax.runs.evaluate import evaluate_run
-from hipolicy_jax.runs.store import load_run
+from hipolicy_jax.runs.store import load_run, with_compute_dtype
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,6 +38,8 @@ class EvaluateArgs:
     inference: InferenceConfig = InferenceConfig()  # default: the run's inference.json
     seed: int | None = None  # evaluation episodes come from eval_key(seed); default the run's training seed, whose
     # initial states training evaluated on: the defaults reproduce the final evaluation of experiments.train
+    compute_dtype: Literal["run", "float32", "bfloat16"] = "run"  # the U-Net's operand dtype (model.compute_dtype);
+    # run: as trained. bfloat16 evaluates the same float32 parameters with bf16 convolution / attention operands
     out: str = ""  # default RUN_DIR/eval
     trace_episodes: int = 4  # episodes drawn in entropy_trace.png
     video: Literal["auto", "mp4", "gif", "none"] = "auto"  # auto: mp4 when ffmpeg is installed, else gif
@@ -53,7 +55,7 @@ def _line(name: str, s: dict) -> str:
 
 
 def main(args: EvaluateArgs) -> dict:
-    run = load_run(args.checkpoint, args.step)
+    run = with_compute_dtype(load_run(args.checkpoint, args.step), args.compute_dtype)
     seed = run.seed if args.seed is None else args.seed
     report = evaluate_run(run, args.inference, episodes=args.episodes, seed=seed, out=args.out,
                           trace_episodes=args.trace_episodes, video_format=args.video,

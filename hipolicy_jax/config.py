@@ -150,8 +150,16 @@ class ModelConfig:
     condition: ConditionMode = "hier"  # hier: each segment its own frequency's obs; low / high: all segments one
     fusion: bool = True  # CLS-token attention across frequency segments (inactive when M = 1)
     fusion_heads: int = 8
+    # None: the paper's fusion (attention over full L_c·C-wide segment tokens). An int: the lighter variant that
+    # projects each segment token to this width before the attention (a model change with fewer parameters).
+    fusion_token_dim: int | None = None
+    # Operand dtype of the U-Net's convolutions and fusion attention (float32 accumulation, parameters, norms):
+    # 'bfloat16' runs them as bf16 matmuls (BF16 dot-product / AMX instructions where the CPU has them).
+    compute_dtype: Literal["float32", "bfloat16"] = "float32"
 
     def __post_init__(self):
+        _require(self.compute_dtype in ("float32", "bfloat16"), "model.compute_dtype",
+                 f"must be 'float32' or 'bfloat16', got {self.compute_dtype!r}")
         _require(self.size in MODEL_SIZES, "model.size", f"must be one of {sorted(MODEL_SIZES)}, got {self.size!r}")
         _require(self.condition in ("hier", "low", "high"), "model.condition",
                  f"must be 'hier', 'low' or 'high', got {self.condition!r}")
@@ -162,6 +170,8 @@ class ModelConfig:
         _require(self.unet_kernel % 2 == 1, "model.kernel_size", f"must be odd, got {self.unet_kernel}")
         _require(self.unet_step_embed % 2 == 0, "model.step_embed_dim", f"must be even, got {self.unet_step_embed}")
         _require(self.fusion_heads >= 1, "model.fusion_heads", f"must be >= 1, got {self.fusion_heads}")
+        _require(self.fusion_token_dim is None or self.fusion_token_dim >= 1, "model.fusion_token_dim",
+                 f"must be None or >= 1, got {self.fusion_token_dim}")
 
     @property
     def unet_dims(self) -> tuple[int, ...]:

@@ -80,15 +80,20 @@ def make_train_step(net, cfg: PolicyConfig, train_cfg: TrainConfig,
         loss, grads = jax.value_and_grad(policy_loss)(state.params, batch, key, net=net, head=head)
         grad_norm = optax.tree.norm(grads)
         finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
-        updates, opt_state = tx.update(grads, state.opt_state, state.params)
-        params = optax.apply_updates(state.params, updates)
-        new_step = state.step + 1
-        if train_cfg.ema:
-            ema = optax.incremental_update(params, state.ema_params, 1.0 - ema_decay(new_step, train_cfg))
-        else:
-            ema = params
-        new = TrainState(step=new_step, params=params, ema_params=ema, opt_state=opt_state)
-        new = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, state)
+
+        def update(state: TrainState) -> TrainState:
+            updates, opt_state = tx.update(grads, state.opt_state, state.params)
+            params = optax.apply_updates(state.params, updates)
+            new_step = state.step + 1
+            if train_cfg.ema:
+                ema = optax.incremental_update(params, state.ema_params, 1.0 - ema_decay(new_step, train_cfg))
+            else:
+                ema = params
+            return TrainState(step=new_step, params=params, ema_params=ema, opt_state=opt_state)
+
+        # A branch, not a select over the whole state: the optimizer and EMA fuse into one in-place pass over the
+        # donated buffers (a tree-wide ``where`` read old and new state again and took 3/4 of the update's time).
+        new = jax.lax.cond(finite, update, lambda s: s, state)
         metrics = {"loss": loss, "grad_norm": grad_norm, "lr": schedule(state.step), "finite": finite}
         return new, metrics
 

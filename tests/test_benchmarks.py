@@ -193,12 +193,21 @@ def test_tradeoff_cheapest_and_spearman():
 
 
 @pytest.mark.parametrize("module", [sampling, train_step, rollout, optimisation, convolutions, tradeoff, "delay",
-                                    "serving"])
+                                    "serving", "profile"])
 def test_benchmark_flags_parse(module):
     if isinstance(module, str):
         import importlib
         module = importlib.import_module(f"benchmarks.{module}")
     assert module.parse_args([]).out_dir is None
+
+
+def test_precision_benchmark_needs_checkpoints(capsys):
+    from benchmarks import precision
+
+    assert precision.parse_args(["--checkpoints", "a", "b"]).checkpoints == ["a", "b"]
+    with pytest.raises(SystemExit):
+        precision.parse_args([])
+    assert "--checkpoints" in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------ the optimisations the benchmarks measured
@@ -301,3 +310,41 @@ def test_pytorch_comparison_shapes():
     assert counts["hipolicy"] > counts["hipolicy-nofusion"]
     grid = bench_models(argparse.Namespace(shapes=None, sizes=["tiny"], obs=["state", "image"]))
     assert [(m.size, m.obs) for m in grid] == [("tiny", "state"), ("tiny", "image")]
+
+
+def test_profile_classifies_ops_by_model_part():
+    """The profiler's grouping: module path and opcodes -> (part, pass)."""
+    from benchmarks.profile import classify
+
+    fwd = "jit(step)/jvp(PolicyNet.denoise)/unet/down0_res0/"
+    bwd = "jit(step)/transpose(jvp(PolicyNet.denoise))/unet/mid_res1/"
+    assert classify(fwd + "block0/conv/conv_general_dilated", {"convolution"}) == ("convolution", "forward")
+    assert classify(bwd + "block1/norm/reduce_sum", {"reduce", "add"}) == ("GroupNorm", "backward")
+    assert classify(fwd + "block0/exp", {"exponential", "multiply"}) == ("Mish", "forward")
+    assert classify(fwd + "film/dot_general", {"dot"}) == ("FiLM", "forward")
+    assert classify(fwd + "mul", {"multiply", "add"}) == ("FiLM", "forward")  # the per-segment scale and bias
+    assert classify(fwd + "fusion/attention/key/dot_general", {"dot"}) == ("fusion attention", "forward")
+    assert classify("jit(step)/jvp(PolicyNet.denoise)/unet/up0_upsample/conv_general_dilated",
+                    {"convolution"}) == ("up-sampling conv", "forward")
+    assert classify(bwd + "block0/conv/rev", {"parameter", "reverse", "transpose", "copy"})[0] == "layout"
+    assert classify("jit(step)/mul", {"multiply", "add", "sqrt", "divide"}) == ("optimizer + EMA", "update")
+    assert classify("jit(step)/jvp(jit(_normal))/erf_inv", {"multiply"})[0] == "loss + noise"
+    assert classify("jit(sample)/vmap()/while/body/mul", {"multiply"}, "sample")[0] == "sampler update + noise"
+
+
+def test_profile_benchmark(tmp_path):
+    """A traced sampler call and train step of the tiny model: the parts add up to the operation total, the
+    convolutions and the optimizer are found, and every part is a known one."""
+    from benchmarks import profile
+
+    res = profile.main(["--quick", "--out-dir", str(tmp_path)])
+    assert _load(tmp_path, "profile")["rows"] == jsonio.loads(jsonio.dumps(res["rows"]))
+    by = {r["workload"]: r for r in res["rows"]}
+    assert set(by) == {"sample", "train"}
+    for r in res["rows"]:
+        _finite(r, ["wall_ms", "total_op_ms"])
+        assert set(r["parts_ms"]) <= set(profile.PARTS)
+        assert math.isclose(sum(r["parts_ms"].values()), r["total_op_ms"], rel_tol=1e-9)
+        assert r["parts_ms"].get("convolution", 0) > 0
+    assert by["train"]["parts_ms"].get("optimizer + EMA", 0) > 0 and "optimizer + EMA" not in by["sample"]["parts_ms"]
+    assert any(k.endswith("(backward)") for k in by["train"]["passes_ms"])

@@ -514,3 +514,64 @@ def test_one_stride_with_the_identity_state_encoder_is_diffusion_policy_lowdim_t
     shapes = jax.eval_shape(lambda: init_policy_params(cfg, 2, obs, jax.random.key(0)))
     assert param_count(shapes) == 65_783_298
     assert "obs_encoder" not in shapes["params"]  # nothing between the observations and the FiLM heads
+
+
+@pytest.mark.parametrize("t", [2, 4, 9])
+@pytest.mark.parametrize("kernel_size,stride", [(5, 1), (3, 2), (1, 1)])
+def test_conv1d_bfloat16_is_a_float32_output_close_to_float32(t, kernel_size, stride):
+    """``compute_dtype='bfloat16'``: bf16 operands, float32 output and gradients within bf16 rounding (~2^-8
+    relative) of the float32 convolution, on the same parameter tree."""
+    x = jax.random.normal(jax.random.key(0), (3, t, 64))
+    f32, bf16 = Conv1d(32, kernel_size, stride=stride), Conv1d(32, kernel_size, stride=stride, compute_dtype="bfloat16")
+    p = f32.init(jax.random.key(1), x)
+    assert jax.tree.structure(p) == jax.tree.structure(bf16.init(jax.random.key(1), x))
+    y32, y16 = f32.apply(p, x), bf16.apply(p, x)
+    assert y16.dtype == jnp.float32 and y16.shape == y32.shape
+    rel = float(jnp.linalg.norm(y16 - y32) / jnp.linalg.norm(y32))
+    assert 1e-5 < rel < 1e-2, rel  # really bf16 (not silently float32), and close
+    g32 = jax.grad(lambda p: jnp.sum(jnp.sin(f32.apply(p, x))))(p)
+    g16 = jax.grad(lambda p: jnp.sum(jnp.sin(bf16.apply(p, x))))(p)
+    for a, b in zip(jax.tree.leaves(g16), jax.tree.leaves(g32)):
+        assert a.dtype == jnp.float32
+        assert float(jnp.linalg.norm(a - b) / jnp.linalg.norm(b)) < 2e-2
+
+
+@pytest.mark.parametrize("fusion", [True, False])
+def test_unet_bfloat16_same_parameters_close_outputs(fusion):
+    """The bf16 U-Net has the float32 one's parameter tree (same init); its output is float32 and within 2 % (relative
+    L2) of the float32 output on the same parameters; the float32 path is untouched by the option."""
+    kw = dict(down_dims=(32, 64, 128), step_embed_dim=16, num_freqs=3, chunk_len=8, fusion=fusion, fusion_heads=4)
+    x = jax.random.normal(jax.random.key(0), (4, 24, A))
+    t = jnp.array([0, 10, 50, 99])
+    cond = jax.random.normal(jax.random.key(1), (4, 3, 12))
+    f32, bf16 = ConditionalUnet1D(**kw), ConditionalUnet1D(**kw, compute_dtype="bfloat16")
+    p = f32.init(jax.random.key(2), x, t, cond)
+    p16 = bf16.init(jax.random.key(2), x, t, cond)
+    jax.tree.map(np.testing.assert_array_equal, p, p16)
+    y32, y16 = f32.apply(p, x, t, cond), bf16.apply(p, x, t, cond)
+    assert y16.dtype == jnp.float32
+    rel = float(jnp.linalg.norm(y16 - y32) / jnp.linalg.norm(y32))
+    assert 1e-5 < rel < 2e-2, rel
+
+
+def test_compute_dtype_is_validated():
+    with pytest.raises(ValueError, match="model.compute_dtype"):
+        replace(PolicyConfig(), **{"model.compute_dtype": "float16"})
+
+
+def test_light_fusion_projects_wide_tokens_only():
+    """``fusion_token_dim``: segment tokens wider than it are projected before the attention (fewer parameters, the
+    same output shape, the CLS token still feeds the output); narrower tokens keep the paper's form."""
+    x = jax.random.normal(jax.random.key(0), (2, 3 * 8, 32))  # L*C = 256
+    paper, light = SegmentFusion(3, 4), SegmentFusion(3, 4, token_dim=64)
+    p_paper, p_light = paper.init(jax.random.key(1), x), light.init(jax.random.key(1), x)
+    assert set(p_light["params"]) == {"cls", "token_in", "attention", "token_out"}
+    assert p_light["params"]["cls"].shape == (1, 1, 64)
+    assert param_count(p_light) < param_count(p_paper) / 3
+    y = light.apply(p_light, x)
+    assert y.shape == (2, 8, 32) and bool(jnp.all(jnp.isfinite(y)))
+    bumped = jax.tree.map(lambda a: a, p_light)
+    bumped["params"]["cls"] = bumped["params"]["cls"] + 1.0
+    assert float(jnp.abs(light.apply(bumped, x) - y).max()) > 1e-4
+    narrow = jax.random.normal(jax.random.key(0), (2, 3 * 8, 4))  # L*C = 32 <= 64: the paper's form
+    assert set(SegmentFusion(3, 4, token_dim=64).init(jax.random.key(1), narrow)["params"]) == {"cls", "attention"}

@@ -68,6 +68,11 @@ def test_learns_bimodal_distribution(dataset, tmp_path):
     assert last <= 0.5 * first, (first, last)
     _check_bimodal(_bimodal_samples(res, dataset, cfg, InferenceConfig(num_samples=32, sampler="ddim",
                                                                        num_steps=20)), 0.9)
+    # the same float32 parameters sampled with bf16 convolution / attention operands keep both modes
+    cfg16 = replace(cfg, **{"model.compute_dtype": "bfloat16"})
+    bf16 = _bimodal_samples(res._replace(net=PolicyNet(cfg16, 2)), dataset, cfg16,
+                            InferenceConfig(num_samples=32, sampler="ddim", num_steps=20))
+    _check_bimodal(bf16, 0.9)
 
     # the checkpoint restores to the same EMA parameters and normaliser
     loaded = load_policy(os.path.join(tmp_path, "checkpoints"))
@@ -132,6 +137,35 @@ def test_nan_stops_with_a_clear_message(dataset, tmp_path):
     train_cfg = TrainConfig(batch_size=32, num_steps=20, lr=1e30, warmup_steps=0, log_every=5, ckpt_every=100)
     with pytest.raises(FloatingPointError, match="non-finite"):
         fit(tiny_cfg(), train_cfg, dataset, str(tmp_path), progress=False, tensorboard=False)
+
+
+def test_non_finite_step_keeps_the_state(dataset):
+    """A NaN batch: the step reports ``finite=False`` and returns the previous state unchanged (the update branch
+    is skipped), so the caller can stop with the last good parameters."""
+    cfg, train_cfg = tiny_cfg(), TrainConfig(batch_size=8, num_steps=10, warmup_steps=2)
+    batch = dataset.get_batch(np.arange(8))
+    net, tx = PolicyNet(cfg, 2), make_optimizer(train_cfg)
+    state = init_train_state(init_policy_params(cfg, 2, batch["obs"], jax.random.key(0)), tx)
+    step = make_train_step(net, cfg, train_cfg, tx)
+    state, metrics = step(state, batch, jax.random.key(1))
+    assert bool(metrics["finite"]) and int(state.step) == 1
+    before = jax.device_get(state)
+    bad = {**batch, "action": np.full_like(batch["action"], np.nan)}
+    state, metrics = step(state, bad, jax.random.key(1))
+    assert not bool(metrics["finite"])
+    jax.tree.map(np.testing.assert_array_equal, jax.device_get(state), before)
+
+
+@pytest.mark.slow
+def test_bfloat16_training_learns_bimodal_distribution(dataset, tmp_path):
+    """Training with ``model.compute_dtype='bfloat16'`` (bf16 operands in the forward and backward pass, float32
+    parameters and optimizer) learns both modes as the float32 run does."""
+    cfg = replace(tiny_cfg(prediction_type="sample"), **{"model.compute_dtype": "bfloat16"})
+    train_cfg = TrainConfig(batch_size=64, num_steps=800, lr=3e-3, warmup_steps=20, log_every=50, ckpt_every=800)
+    res = fit(cfg, train_cfg, dataset, str(tmp_path), progress=False, tensorboard=False)
+    assert np.mean(res.losses[-50:]) <= 0.5 * np.mean(res.losses[:20])
+    _check_bimodal(_bimodal_samples(res, dataset, cfg, InferenceConfig(num_samples=32, sampler="ddim",
+                                                                       num_steps=20)), 0.9)
 
 
 def test_train_step_compiles_once(dataset):

@@ -53,6 +53,8 @@ class PolicyNet(nn.Module):
             condition=model.condition,
             fusion=model.fusion,
             fusion_heads=model.fusion_heads,
+            compute_dtype=model.compute_dtype,
+            fusion_token_dim=model.fusion_token_dim,
         )
 
     def encode(self, obs, train: bool = False) -> jax.Array:

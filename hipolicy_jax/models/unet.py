@@ -47,6 +47,7 @@ import jax.numpy as jnp
 import flax.linen as nn
 
 ConditionMode = Literal["hier", "low", "high"]
+ComputeDtype = Literal["float32", "bfloat16"]
 
 
 def mish(x: jax.Array) -> jax.Array:
@@ -136,22 +137,63 @@ class FiLMHead(nn.Module):
         return mish(film) @ params["kernel"] + params["bias"]
 
 
-def conv1d(x: jax.Array, kernel: jax.Array, padding: tuple[int, int], stride: int = 1) -> jax.Array:
+def conv1d(x: jax.Array, kernel: jax.Array, padding: tuple[int, int], stride: int = 1,
+           compute_dtype: ComputeDtype = "float32") -> jax.Array:
     """1D cross-correlation ``(B, T, C_in) * (k, C_in, C_out) -> (B, T_out, C_out)``, as ``nn.Conv`` (no bias).
 
-    Where the input is shorter than the kernel (the deepest U-Net levels of short chunks: ``T = 2, 4`` with
-    ``k = 5``), XLA swaps the convolution's operands and its CPU backend runs the result ~35x slower than the
-    equivalent im2col matmul (forward and gradient; ``benchmarks.convolutions`` measures the model-level gain).
-    There the windows are gathered and multiplied directly; otherwise the native convolution runs.
+    ``compute_dtype='float32'``: XLA's native convolution, except where the input is shorter than the kernel (the
+    deepest U-Net levels of short chunks: ``T = 2, 4`` with ``k = 5``): there XLA swaps the convolution's operands
+    and its CPU backend runs the result ~35x slower than the equivalent im2col matmul (forward and gradient;
+    ``benchmarks.convolutions`` measures the model-level gain), so the windows are gathered and multiplied directly.
+
+    ``compute_dtype='bfloat16'``: always the im2col matmul, with bf16 operands and float32 accumulation and output
+    (``preferred_element_type``). XLA's CPU convolution gains nothing from bf16 operands, its matmul uses the BF16
+    dot-product / AMX instructions where the CPU has them (``benchmarks.profile`` measures both).
     """
     k = kernel.shape[0]
-    if x.shape[1] >= k:
+    if compute_dtype == "float32" and x.shape[1] >= k:
         return jax.lax.conv_general_dilated(x, kernel.astype(x.dtype), (stride,), (padding,),
                                             dimension_numbers=("NWC", "WIO", "NWC"))
-    xp = jnp.pad(x, ((0, 0), padding, (0, 0)))
+    dtype = jnp.dtype(compute_dtype)
+    xp = jnp.pad(x.astype(dtype), ((0, 0), padding, (0, 0)))
     t_out = (xp.shape[1] - k) // stride + 1
-    cols = jnp.concatenate([xp[:, i:i + stride * (t_out - 1) + 1:stride] for i in range(k)], axis=-1)
-    return cols @ kernel.reshape(k * kernel.shape[1], kernel.shape[2]).astype(x.dtype)
+    cols = xp if k == 1 and stride == 1 else jnp.concatenate(
+        [xp[:, i:i + stride * (t_out - 1) + 1:stride] for i in range(k)], axis=-1)
+    w = kernel.reshape(k * kernel.shape[1], kernel.shape[2])
+    if dtype == jnp.float32:
+        return cols @ w
+    return matmul_lowp(cols, w)
+
+
+@jax.custom_vjp
+def matmul_lowp(a: jax.Array, w: jax.Array) -> jax.Array:
+    """``a @ w`` for low-precision activations ``a`` ``(..., K)`` (e.g. bf16) and a float32 weight ``w`` ``(K, N)``:
+    operands in ``a``'s dtype, float32 accumulation and output ``(..., N)``.
+
+    The custom gradient keeps the backward pass in the same precision: the float32 cotangent is rounded to
+    ``a``'s dtype once, both gradient matmuls take low-precision operands with float32 accumulation, ``da`` is
+    returned in ``a``'s dtype and ``dw`` in float32. (Differentiating the plain mixed-dtype ``dot_general`` would
+    promote the weight gradient's operands to float32 and lose the bf16 speed-up in training.)
+    """
+    return jax.lax.dot_general(a, w.astype(a.dtype), (((a.ndim - 1,), (0,)), ((), ())),
+                               preferred_element_type=jnp.float32)
+
+
+def _matmul_lowp_fwd(a, w):
+    wl = w.astype(a.dtype)
+    return jax.lax.dot_general(a, wl, (((a.ndim - 1,), (0,)), ((), ())), preferred_element_type=jnp.float32), (a, wl)
+
+
+def _matmul_lowp_bwd(res, g):
+    a, wl = res
+    gl = g.astype(a.dtype)
+    da = jax.lax.dot_general(gl, wl, (((g.ndim - 1,), (1,)), ((), ())), preferred_element_type=jnp.float32)
+    lead = tuple(range(a.ndim - 1))
+    dw = jax.lax.dot_general(a, gl, ((lead, lead), ((), ())), preferred_element_type=jnp.float32)
+    return da.astype(a.dtype), dw
+
+
+matmul_lowp.defvjp(_matmul_lowp_fwd, _matmul_lowp_bwd)
 
 
 class Conv1d(nn.Module):
@@ -162,13 +204,14 @@ class Conv1d(nn.Module):
     features: int
     kernel_size: int
     stride: int = 1
+    compute_dtype: ComputeDtype = "float32"  # conv1d's operand dtype; parameters and output stay float32
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         k, pad = self.kernel_size, self.kernel_size // 2
         w = self.param("kernel", nn.initializers.lecun_normal(), (k, x.shape[-1], self.features))
         bias = self.param("bias", nn.initializers.zeros_init(), (self.features,))
-        return conv1d(x, w, (pad, pad), self.stride) + bias
+        return conv1d(x, w, (pad, pad), self.stride, self.compute_dtype) + bias
 
 
 class Upsample1d(nn.Module):
@@ -184,6 +227,7 @@ class Upsample1d(nn.Module):
     """
 
     features: int
+    compute_dtype: ComputeDtype = "float32"
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -193,7 +237,7 @@ class Upsample1d(nn.Module):
         zero = jnp.zeros_like(w[0])
         taps = jnp.stack([jnp.concatenate([w[0], zero], -1), jnp.concatenate([w[2], w[1]], -1),
                           jnp.concatenate([zero, w[3]], -1)])  # (3, C_in, 2·features): [even | odd]
-        return conv1d(x, taps, (1, 1)).reshape(b, 2 * t, self.features) + bias
+        return conv1d(x, taps, (1, 1), 1, self.compute_dtype).reshape(b, 2 * t, self.features) + bias
 
 
 class Conv1dBlock(nn.Module):
@@ -202,10 +246,11 @@ class Conv1dBlock(nn.Module):
     out_channels: int
     kernel_size: int
     n_groups: int = 8
+    compute_dtype: ComputeDtype = "float32"  # the convolution's; GroupNorm and Mish run in float32
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        x = Conv1d(self.out_channels, self.kernel_size, name="conv")(x)
+        x = Conv1d(self.out_channels, self.kernel_size, compute_dtype=self.compute_dtype, name="conv")(x)
         x = nn.GroupNorm(num_groups=self.n_groups, epsilon=1e-5, name="norm")(x)
         return mish(x)
 
@@ -216,23 +261,39 @@ class SegmentFusion(nn.Module):
     ``(B, num_segments * L, C) -> (B, L, C)``: tokens ``[CLS, flatten(seg_0), ..., flatten(seg_{M-1})]`` of size
     ``L*C``; the CLS output is the global feature. Attention is over tokens *within* a sample (unlike the release,
     whose ``batch_first=False`` attention runs across the batch, see the module docstring).
+
+    ``token_dim`` (a model change, not the paper's form; None = the paper's): each segment token is first
+    projected ``L*C -> token_dim`` (one shared ``Dense``), the attention runs on ``token_dim``-wide tokens and only
+    the CLS output is projected back ``token_dim -> L*C``; tokens no wider than ``token_dim`` keep the paper's
+    form (the first block's raw action segments). With ``L*C = 2048`` and ``token_dim = 256`` that is
+    1.7 M instead of 16.8 M parameters and about a tenth of the attention's FLOPs.
     """
 
     num_segments: int
     num_heads: int = 8
+    compute_dtype: ComputeDtype = "float32"  # the attention's projections and scores; the output is float32
+    token_dim: int | None = None
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         b, t, c = x.shape
         seg = t // self.num_segments
         d = seg * c
+        dtype = jnp.dtype(self.compute_dtype)
         tokens = x.reshape(b, self.num_segments, d)
-        cls = self.param("cls", nn.initializers.normal(stddev=1.0), (1, 1, d))
-        tokens = jnp.concatenate([jnp.broadcast_to(cls, (b, 1, d)), tokens], axis=1)  # (B, M+1, D)
-        qkv = -(-d // self.num_heads) * self.num_heads
-        out = nn.MultiHeadDotProductAttention(num_heads=self.num_heads, qkv_features=qkv, out_features=d,
-                                              name="attention")(tokens, tokens)
-        return out[:, 0].reshape(b, seg, c)
+        light = self.token_dim is not None and d > self.token_dim
+        if light:
+            tokens = nn.Dense(self.token_dim, dtype=dtype, name="token_in")(tokens).astype(jnp.float32)
+        width = tokens.shape[-1]
+        cls = self.param("cls", nn.initializers.normal(stddev=1.0), (1, 1, width))
+        tokens = jnp.concatenate([jnp.broadcast_to(cls, (b, 1, width)), tokens], axis=1)  # (B, M+1, D)
+        qkv = -(-width // self.num_heads) * self.num_heads
+        out = nn.MultiHeadDotProductAttention(num_heads=self.num_heads, qkv_features=qkv, out_features=width,
+                                              dtype=dtype, name="attention")(tokens, tokens)
+        glob = out[:, 0].astype(jnp.float32)  # (B, D)
+        if light:
+            glob = nn.Dense(d, dtype=dtype, name="token_out")(glob).astype(jnp.float32)
+        return glob.reshape(b, seg, c)
 
 
 def apply_film(x: jax.Array, embed: jax.Array) -> jax.Array:
@@ -263,21 +324,23 @@ class ConditionalResidualBlock1D(nn.Module):
     fusion: bool = False
     num_segments: int = 1
     fusion_heads: int = 8
+    compute_dtype: ComputeDtype = "float32"
+    fusion_token_dim: int | None = None
 
     @nn.compact
     def __call__(self, x: jax.Array, film_cond) -> jax.Array:
-        c = self.out_channels
+        c, dt = self.out_channels, self.compute_dtype
         embed = FiLMHead(2 * c, name="film")(film_cond)  # (B, K, 2C)
         if self.fusion:
-            glob = SegmentFusion(self.num_segments, self.fusion_heads, name="fusion")(x)  # (B, L, C_in)
+            glob = SegmentFusion(self.num_segments, self.fusion_heads, dt, self.fusion_token_dim, name="fusion")(x)  # (B, L, C_in)
             glob = jnp.tile(glob, (1, self.num_segments, 1))  # same global feature for every segment
-            h = Conv1dBlock(2 * c, self.kernel_size, self.n_groups, name="block0")(jnp.concatenate([x, glob], -1))
+            h = Conv1dBlock(2 * c, self.kernel_size, self.n_groups, dt, name="block0")(jnp.concatenate([x, glob], -1))
             h = jnp.concatenate([apply_film(h[..., :c], embed), h[..., c:]], axis=-1)
         else:
-            h = Conv1dBlock(c, self.kernel_size, self.n_groups, name="block0")(x)
+            h = Conv1dBlock(c, self.kernel_size, self.n_groups, dt, name="block0")(x)
             h = apply_film(h, embed)
-        h = Conv1dBlock(c, self.kernel_size, self.n_groups, name="block1")(h)
-        res = x if x.shape[-1] == c else nn.Conv(c, (1,), name="residual")(x)
+        h = Conv1dBlock(c, self.kernel_size, self.n_groups, dt, name="block1")(h)
+        res = x if x.shape[-1] == c else Conv1d(c, 1, compute_dtype=dt, name="residual")(x)
         return h + res
 
 
@@ -286,7 +349,10 @@ class ConditionalUnet1D(nn.Module):
 
     Fields: ``down_dims`` (channel width per level), ``kernel_size``, ``n_groups`` (GroupNorm), ``step_embed_dim``,
     ``num_freqs`` (M), ``chunk_len`` (L_c), ``condition`` ('hier' | 'low' | 'high'), ``fusion`` (global fusion, only
-    active when M > 1), ``fusion_heads``. ``chunk_len`` must be divisible by ``2^(len(down_dims)-1)``.
+    active when M > 1), ``fusion_heads``, ``fusion_token_dim`` (None: the paper's full-width segment tokens; else the
+    lighter fusion of ``SegmentFusion``), ``compute_dtype`` ('float32' | 'bfloat16': the operands of every
+    convolution and of the fusion attention; parameters, accumulation, GroupNorm, Mish, FiLM and the output stay
+    float32). ``chunk_len`` must be divisible by ``2^(len(down_dims)-1)``.
     """
 
     down_dims: tuple[int, ...] = (64, 128, 256)
@@ -298,6 +364,8 @@ class ConditionalUnet1D(nn.Module):
     condition: ConditionMode = "hier"
     fusion: bool = True
     fusion_heads: int = 8
+    compute_dtype: ComputeDtype = "float32"
+    fusion_token_dim: int | None = None
 
     @property
     def uses_fusion(self) -> bool:
@@ -371,8 +439,9 @@ class ConditionalUnet1D(nn.Module):
             films = {name: film_in for name, _, _ in self.block_specs()}
         else:
             films = film
+        dt = self.compute_dtype
         blocks = {name: ConditionalResidualBlock1D(ch, self.kernel_size, self.n_groups, fuse, self.num_freqs,
-                                                   self.fusion_heads, name=name)
+                                                   self.fusion_heads, dt, self.fusion_token_dim, name=name)
                   for name, ch, fuse in self.block_specs()}
 
         def res(name, h):
@@ -385,7 +454,7 @@ class ConditionalUnet1D(nn.Module):
             x = res(f"down{i}_res1", x)
             skips.append(x)
             if i < levels - 1:
-                x = Conv1d(ch, 3, stride=2, name=f"down{i}_downsample")(x)
+                x = Conv1d(ch, 3, stride=2, compute_dtype=dt, name=f"down{i}_downsample")(x)
 
         x = res("mid_res0", x)
         x = res("mid_res1", x)
@@ -394,7 +463,7 @@ class ConditionalUnet1D(nn.Module):
             x = jnp.concatenate([x, skips.pop()], axis=-1)
             x = res(f"up{j}_res0", x)
             x = res(f"up{j}_res1", x)
-            x = Upsample1d(ch, name=f"up{j}_upsample")(x)
+            x = Upsample1d(ch, dt, name=f"up{j}_upsample")(x)
 
-        x = Conv1dBlock(self.down_dims[0], self.kernel_size, self.n_groups, name="final_block")(x)
-        return nn.Conv(a, (1,), name="final_conv")(x)
+        x = Conv1dBlock(self.down_dims[0], self.kernel_size, self.n_groups, dt, name="final_block")(x)
+        return Conv1d(a, 1, compute_dtype=dt, name="final_conv")(x)

@@ -18,7 +18,7 @@ import numpy as np
 
 from hipolicy_jax import jsonio
 from hipolicy_jax.checkpoint import LoadedPolicy, config_from_dict, load_policy
-from hipolicy_jax.config import InferenceConfig
+from hipolicy_jax.config import InferenceConfig, replace
 from hipolicy_jax.data.dataset import SequenceDataset, train_heldout_datasets
 from hipolicy_jax.data.replay_buffer import ReplayBuffer
 from hipolicy_jax.evaluation.evaluator import Evaluator
@@ -96,6 +96,17 @@ def load_run(path: str, step: int | None = None) -> Run:
     if "task" not in loaded.meta:
         raise ValueError(f"{ckpt_dir}: checkpoint meta lacks 'task' (not written by experiments.train?)")
     return Run(run_dir, ckpt_dir, loaded, str(loaded.meta["task"]))
+
+
+def with_compute_dtype(run: Run, compute_dtype: str) -> Run:
+    """The run with its U-Net rebuilt for ``model.compute_dtype`` ('float32' | 'bfloat16'; 'run': unchanged). The
+    parameters are the same float32 ones: only the operand dtype of the convolutions and fusion attention changes."""
+    if compute_dtype in ("run", run.policy.cfg.model.compute_dtype):
+        return run
+    from hipolicy_jax.models.policy_net import PolicyNet
+
+    cfg = replace(run.policy.cfg, **{"model.compute_dtype": compute_dtype})
+    return run._replace(policy=run.policy._replace(cfg=cfg, net=PolicyNet(cfg, run.action_dim)))
 
 
 def run_inference(run: Run, default: InferenceConfig = InferenceConfig()) -> InferenceConfig:
