@@ -274,6 +274,16 @@ def matmul_peak_gflops(n: int | None = None, repeats: int = 10, dtype=jnp.float3
             "median_gflops": 2.0 * n**3 / float(np.median(times)) / 1e9}
 
 
+def memory_bandwidth_gbs(mbytes: int = 512, repeats: int = 10) -> dict[str, float]:
+    """Estimated read bandwidth: the best GB/s of summing a ``mbytes`` MB float32 array (far larger than the
+    caches). At small N one denoising step reads every U-Net weight once, so weight bytes / this bandwidth bounds
+    its latency from below."""
+    a = jnp.ones((mbytes * 2**20 // 4,), jnp.float32)
+    total = jax.jit(jnp.sum)
+    times, _ = timed_calls(lambda i: total(a), repeats, warmup=2)
+    return {"mbytes": mbytes, "gbs": a.nbytes / min(times) / 1e9, "median_gbs": a.nbytes / float(np.median(times)) / 1e9}
+
+
 def write_results(name: str, payload: dict, out_dir: str | None = None) -> str:
     """Write ``payload`` (plus device metadata) to ``<out_dir>/<name>_<device>.json``; returns the path."""
     out_dir = out_dir or RESULTS_DIR
@@ -319,5 +329,5 @@ def precision_context(precision: str | None):
 
 __all__ = ["ACTION_DIM", "BenchPolicy", "MemoryMonitor", "RESULTS_DIR", "SIZES", "STATE_DIM", "bench_config",
            "compiled_flops", "device_description", "device_kind", "example_obs", "latency_stats",
-           "make_bench_policy", "SHAPES", "BenchModel", "bench_models", "markdown_table", "matmul_peak_gflops", "param_count", "precision_context",
+           "make_bench_policy", "SHAPES", "BenchModel", "bench_models", "markdown_table", "matmul_peak_gflops", "memory_bandwidth_gbs", "param_count", "precision_context",
            "timed_calls", "write_results"]

@@ -26,8 +26,8 @@ import jax
 import jax.numpy as jnp
 
 from benchmarks.common import (MemoryMonitor, base_parser, bench_models, compiled_flops, device_kind, latency_stats,
-                               markdown_table, matmul_peak_gflops, param_count, precision_context, timed_calls,
-                               write_results)
+                               markdown_table, matmul_peak_gflops, memory_bandwidth_gbs, param_count,
+                               precision_context, timed_calls, write_results)
 from hipolicy_jax.config import InferenceConfig, PolicyConfig, replace
 from hipolicy_jax.models.policy_net import PolicyNet, init_policy_params
 from hipolicy_jax.sampling import make_sampler
@@ -132,15 +132,19 @@ def main(argv=None) -> dict:
     args = parse_args(argv)
     peak = matmul_peak_gflops(args.peak_n)
     peak_bf16 = matmul_peak_gflops(args.peak_n, dtype=jnp.bfloat16)
+    bandwidth = memory_bandwidth_gbs()
     print(f"machine peak ({peak['n']}x{peak['n']} matmul): f32 {peak['gflops']:.1f} GFLOP/s, bf16 operands "
-          f"{peak_bf16['gflops']:.1f} GFLOP/s")
+          f"{peak_bf16['gflops']:.1f} GFLOP/s; memory read bandwidth {bandwidth['gbs']:.1f} GB/s")
     rows, models = [], []
     for model in bench_models(args):
         size, obs = model.size, model.obs
         policy = model.policy()
         fl = flops_per_sample_step(policy)
+        weight_mb = sum(leaf.size * (2 if model.dtype == "bfloat16" and leaf.ndim == 3 else 4)
+                        for leaf in jax.tree.leaves(policy.params)) / 2**20
         models.append({"size": size, "obs": obs, "dtype": model.dtype, "params": param_count(policy.params),
-                       "flops_per_sample_step": fl})
+                       "flops_per_sample_step": fl, "weight_mb_per_step": weight_mb,
+                       "weight_read_bound_ms_per_step": weight_mb * 2**20 / bandwidth["gbs"] / 1e6})
         print(f"[{size}/{obs}/{model.dtype}] {param_count(policy.params):,} params, {fl / 1e6:.2f} MFLOP per sample-step")
         for sampler in args.samplers:
             steps = sampler_steps(policy.cfg, sampler, args.ddim_steps)
@@ -181,9 +185,10 @@ def main(argv=None) -> dict:
     payload = {"command": "python -m benchmarks.sampling " + " ".join(sys.argv[1:] if argv is None else argv),
                "args": {k: v for k, v in vars(args).items() if k != "out_dir"}, "machine_peak": peak,
                "machine_peak_bf16": peak_bf16,
+               "memory_bandwidth": bandwidth,
                "default_policy_params": default_policy_param_count(), "models": models, "rows": rows,
                "table_md": table}
-    path = write_results(NAME, payload, args.out_dir)
+    path = write_results(NAME + ("_shapes" if args.shapes else ""), payload, args.out_dir)  # the peer shapes apart
     print(f"wrote {path}")
     return payload
 

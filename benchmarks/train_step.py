@@ -111,7 +111,7 @@ def main(argv=None) -> dict:
           r["median_s"] * 1e3, r["p90_s"] * 1e3, r["steps_per_s"], r["samples_per_s"], r["gflops"],
           100 * r["fraction_of_f32_peak"], 100 * r["fraction_of_bf16_peak"], r["compile_s"], r["first_step_s"]]
          for r in rows])
-    return report_rows(NAME, argv, args, rows, table, machine_peaks=peaks)
+    return report_rows(NAME + ("_shapes" if args.shapes else ""), argv, args, rows, table, machine_peaks=peaks)
 
 
 if __name__ == "__main__":

@@ -36,6 +36,7 @@ import numpy as np
 
 from hipolicy_jax.config import ChunkConfig, InferenceConfig, PolicyConfig
 from hipolicy_jax.heads import GenerativeHead, make_head
+from hipolicy_jax.models.unet import lowp_kernels
 
 
 class SampleResult(NamedTuple):
@@ -152,6 +153,7 @@ def sample(params, normalizer, obs: dict[str, jax.Array], key: jax.Array, thresh
     """
     head = make_head(cfg)
     n = inference.num_samples
+    params = lowp_kernels(params, cfg.model.compute_dtype)  # bf16 kernels once per call, not once per step
     cond = net.apply(params, obs if obs_normalized else normalizer.normalize_obs(obs), method=net.encode)
     film = precomputes_film(net)
     if film:

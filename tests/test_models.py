@@ -575,3 +575,23 @@ def test_light_fusion_projects_wide_tokens_only():
     assert float(jnp.abs(light.apply(bumped, x) - y).max()) > 1e-4
     narrow = jax.random.normal(jax.random.key(0), (2, 3 * 8, 4))  # L*C = 32 <= 64: the paper's form
     assert set(SegmentFusion(3, 4, token_dim=64).init(jax.random.key(1), narrow)["params"]) == {"cls", "attention"}
+
+
+def test_lowp_kernels_casts_conv_and_attention_kernels_only():
+    """The sampler's once-per-call cast: conv and fusion-attention kernels to bf16, FiLM / step MLP / norms / biases
+    stay float32, and the bf16 U-Net gives the same output on the cast tree (it casts those kernels itself)."""
+    from hipolicy_jax.models.unet import lowp_kernels
+
+    kw = dict(down_dims=(32, 64), step_embed_dim=16, num_freqs=2, chunk_len=4, fusion_heads=2,
+              compute_dtype="bfloat16")
+    x, t, cond = jnp.ones((2, 8, A)), jnp.array([1, 7]), jnp.ones((2, 2, 6))
+    net = ConditionalUnet1D(**kw)
+    p = net.init(jax.random.key(0), x, t, cond)
+    low = lowp_kernels(p, "bfloat16")
+    flat = {jax.tree_util.keystr(k): v for k, v in jax.tree_util.tree_flatten_with_path(low)[0]}
+    cast = {k for k, v in flat.items() if v.dtype == jnp.bfloat16}
+    assert any("conv" in k for k in cast) and any("attention" in k for k in cast)
+    assert any("upsample" in k for k in cast) and any("final_conv" in k for k in cast)
+    assert not any(s in k for k in cast for s in ("film", "step_dense", "norm", "bias", "cls"))
+    assert lowp_kernels(p, "float32") is p
+    np.testing.assert_allclose(net.apply(low, x, t, cond), net.apply(p, x, t, cond), atol=1e-6)

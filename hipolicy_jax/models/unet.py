@@ -196,6 +196,25 @@ def _matmul_lowp_bwd(res, g):
 matmul_lowp.defvjp(_matmul_lowp_fwd, _matmul_lowp_bwd)
 
 
+def lowp_kernels(variables, compute_dtype: ComputeDtype):
+    """``variables`` with the U-Net's convolution and fusion-attention kernels cast to ``compute_dtype`` (other
+    leaves unchanged; a no-op for float32). The sampler does this once per call, before its loop: at small N every
+    denoising step is bound by reading the weights, and bf16 kernels halve those bytes (the per-step cast of
+    float32 kernels would add to them). Kernels: the 3-D ``kernel`` leaves under ``unet`` (convolutions and the
+    attention's projections) and every ``kernel`` under a ``fusion`` module; FiLM and step-MLP kernels stay."""
+    if compute_dtype == "float32":
+        return variables
+    dtype = jnp.dtype(compute_dtype)
+
+    def cast(path, leaf):
+        keys = [getattr(k, "key", getattr(k, "name", "")) for k in path]
+        if "unet" in keys and keys[-1] == "kernel" and (leaf.ndim == 3 or "fusion" in keys):
+            return leaf.astype(dtype)
+        return leaf
+
+    return jax.tree_util.tree_map_with_path(cast, variables)
+
+
 class Conv1d(nn.Module):
     """``nn.Conv(features, (kernel_size,), strides=stride, padding=kernel_size // 2)`` with the same parameter tree
     (``kernel (k, C_in, features)``, ``bias``) through ``conv1d``: ``(B, T, C_in) -> (B, ceil(T / stride), features)``.
