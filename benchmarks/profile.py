@@ -34,13 +34,10 @@ import tempfile
 import time
 
 import jax
-import jax.numpy as jnp
 
 from benchmarks.common import base_parser, bench_models, device_kind, markdown_table, report_rows
 from benchmarks.sampling import compiled_sampler
-from benchmarks.train_step import synthetic_batch
-from hipolicy_jax.config import TrainConfig
-from hipolicy_jax.training import init_train_state, make_optimizer, make_train_step
+from benchmarks.train_step import train_setup
 
 NAME = "profile"
 PARTS = ("convolution", "down-sampling conv", "up-sampling conv", "GroupNorm", "Mish", "FiLM", "fusion attention",
@@ -195,13 +192,7 @@ def sample_workload(model, args):
 
 
 def train_workload(model, args):
-    policy = model.policy()
-    train_cfg = TrainConfig(batch_size=args.batch, num_steps=10_000, warmup_steps=10)
-    tx = make_optimizer(train_cfg)
-    step = make_train_step(policy.net, policy.cfg, train_cfg, tx)
-    batch = synthetic_batch(policy.cfg, args.batch, jax.random.key(1), model.state_dim, model.action_dim)
-    key = jax.random.key(2)
-    holder = {"state": init_train_state(policy.params, tx)}
+    _, step, batch, key, holder = train_setup(model, args.batch)
     hlo = step.lower(holder["state"], batch, key).compile().as_text()
 
     def call():

@@ -52,17 +52,23 @@ def synthetic_batch(cfg, batch: int, key: jax.Array, state_dim: int = STATE_DIM,
     return {"obs": obs, "action": action}
 
 
+def train_setup(model: BenchModel, batch_size: int, **changes):
+    """(policy, jitted train step, synthetic batch, key, holder of the donated train state) of one model: the real
+    step (AdamW + cosine schedule + EMA) at ``batch_size``; ``changes`` go to the policy config."""
+    policy = model.policy(**changes)
+    train_cfg = TrainConfig(batch_size=batch_size, num_steps=10_000, warmup_steps=10)
+    tx = make_optimizer(train_cfg)
+    step = make_train_step(policy.net, policy.cfg, train_cfg, tx)
+    batch = synthetic_batch(policy.cfg, batch_size, jax.random.key(1), model.state_dim, model.action_dim)
+    return policy, step, batch, jax.random.key(2), {"state": init_train_state(policy.params, tx)}
+
+
 def bench_config_row(model: BenchModel, args, points: int | None = None, peaks: dict | None = None) -> dict:
     """Compile time, first-step time, steady-state step latency and FLOPs of one model (``points``: point-cloud
     size)."""
     size, obs = model.size, model.obs
-    policy = model.policy(**({} if points is None else {"encoder.num_points": points}))
-    train_cfg = TrainConfig(batch_size=args.batch, num_steps=10_000, warmup_steps=10)
-    tx = make_optimizer(train_cfg)
-    step = make_train_step(policy.net, policy.cfg, train_cfg, tx)
-    batch = synthetic_batch(policy.cfg, args.batch, jax.random.key(1), model.state_dim, model.action_dim)
-    key = jax.random.key(2)
-    holder = {"state": init_train_state(policy.params, tx)}
+    policy, step, batch, key, holder = train_setup(model, args.batch,
+                                                   **({} if points is None else {"encoder.num_points": points}))
 
     def one(i):
         holder["state"], metrics = step(holder["state"], batch, key)  # the state is donated: keep only the new one
