@@ -200,15 +200,16 @@ def lowp_kernels(variables, compute_dtype: ComputeDtype):
     """``variables`` with the U-Net's convolution and fusion-attention kernels cast to ``compute_dtype`` (other
     leaves unchanged; a no-op for float32). The sampler does this once per call, before its loop: at small N every
     denoising step is bound by reading the weights, and bf16 kernels halve those bytes (the per-step cast of
-    float32 kernels would add to them). Kernels: the 3-D ``kernel`` leaves under ``unet`` (convolutions and the
-    attention's projections) and every ``kernel`` under a ``fusion`` module; FiLM and step-MLP kernels stay."""
+    float32 kernels would add to them). Kernels: the 3-D ``kernel`` leaves outside the observation encoder
+    (convolutions and the attention's projections) and every ``kernel`` under a ``fusion`` module; FiLM and step-MLP
+    kernels (2-D) and the encoder stay."""
     if compute_dtype == "float32":
         return variables
     dtype = jnp.dtype(compute_dtype)
 
     def cast(path, leaf):
         keys = [getattr(k, "key", getattr(k, "name", "")) for k in path]
-        if "unet" in keys and keys[-1] == "kernel" and (leaf.ndim == 3 or "fusion" in keys):
+        if keys[-1] == "kernel" and "obs_encoder" not in keys and (leaf.ndim == 3 or "fusion" in keys):
             return leaf.astype(dtype)
         return leaf
 
