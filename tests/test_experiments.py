@@ -432,3 +432,26 @@ def test_readme_section_from_table_files(tmp_path):
     other = tmp_path / "OTHER.md"
     other.write_text("no markers\n")
     assert not update_readme(str(other), section) and other.read_text() == "no markers\n"
+
+
+def test_evaluate_compute_dtype_rebuilds_the_network_only(tiny):
+    """``experiments.evaluate --compute-dtype bfloat16``: the same float32 parameters in a network whose U-Net runs
+    bf16 operands; its denoiser output stays close to the float32 one; 'run' leaves the run untouched."""
+    from hipolicy_jax.runs.store import with_compute_dtype
+
+    _, run = tiny
+    args = parse_with_run_inference(evaluate.EvaluateArgs, ["--checkpoint", run, "--compute-dtype", "bfloat16"])
+    assert args.compute_dtype == "bfloat16"
+    base = load_run(run)
+    assert with_compute_dtype(base, "run") is base and with_compute_dtype(base, "float32") is base
+    low = with_compute_dtype(base, "bfloat16")
+    assert low.policy.cfg.model.compute_dtype == "bfloat16" and low.policy.net.cfg.model.compute_dtype == "bfloat16"
+    assert low.policy.params is base.policy.params and low.task == base.task
+    cfg = base.policy.cfg
+    x = jax.random.normal(jax.random.key(0), (2, cfg.chunk.horizon, base.action_dim))
+    obs = {"state": jax.random.uniform(jax.random.key(2), (2, cfg.chunk.num_freqs, cfg.chunk.obs_horizon,
+                                                             base.policy.normalizer.stats["state"]["scale"].shape[-1]))}
+    t = np.array([3, 40])
+    ref = np.asarray(base.policy.net.apply(base.policy.params, obs, x, t))
+    out = low.policy.net.apply(base.policy.params, obs, x, t)
+    assert out.dtype == np.float32 and 0 < np.abs(np.asarray(out) - ref).max() < 0.05 * np.abs(ref).max()
