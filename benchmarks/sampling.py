@@ -94,12 +94,15 @@ def bench_vmap_row(policy, sampler: str, steps: int, n: int, args) -> dict:
     with precision_context(args.matmul_precision):
         with MemoryMonitor() as mem:
             times, first = timed_calls(lambda i: call(jax.random.key(i + 1000)).chunks, 1, warmup=1)
+            first_after_compile = times[0]  # the call right after the compiling one
             cache = fn._cache_size()
             times, _ = timed_calls(lambda i: call(jax.random.key(i)).chunks, args.repeats, args.row_budget_s,
                                    warmup=0)
             retraces = fn._cache_size() - cache
-    return {**latency_stats(times), "compile_s": first, "mem_peak_mb": mem.peak_mb, "mem_delta_mb": mem.delta_mb,
-            "mem_kind": mem.kind, "retraces": retraces}
+    stats = latency_stats(times)
+    return {**stats, "compile_s": first, "first_after_compile_s": first_after_compile,
+            "first_call_ratio": first_after_compile / stats["median_s"], "mem_peak_mb": mem.peak_mb,
+            "mem_delta_mb": mem.delta_mb, "mem_kind": mem.kind, "retraces": retraces}
 
 
 def bench_loop_row(policy, sampler: str, steps: int, n: int, args) -> dict:
@@ -171,11 +174,11 @@ def main(argv=None) -> dict:
             r["loop_over_vmap"] = r["median_s"] / match[0]["median_s"] if match else math.nan
     table = markdown_table(
         ["size", "obs", "dtype", "sampler", "steps", "N", "mode", "median ms", "p90 ms", "calls", "lat(N)/lat(1)",
-         "GFLOP/s", "% f32 peak", "% bf16 peak", "mem +MB", "compile s"],
-        [[r["size"], r["obs"], r["dtype"], r["sampler"], r["steps"], r["n"], r["mode"], r["median_s"] * 1e3, r["p90_s"] * 1e3,
-          r["calls"], r["ratio_to_n1"], r["gflops"], 100 * r["fraction_of_peak"], 100 * r["fraction_of_bf16_peak"],
-          r["mem_delta_mb"],
-          r["compile_s"]] for r in rows])
+         "GFLOP/s", "% f32 peak", "% bf16 peak", "mem +MB", "compile s", "1st call after compile / median"],
+        [[r["size"], r["obs"], r["dtype"], r["sampler"], r["steps"], r["n"], r["mode"], r["median_s"] * 1e3,
+          r["p90_s"] * 1e3, r["calls"], r["ratio_to_n1"], r["gflops"], 100 * r["fraction_of_peak"],
+          100 * r["fraction_of_bf16_peak"], r["mem_delta_mb"], r["compile_s"], r.get("first_call_ratio", math.nan)]
+         for r in rows])
     print(table)
     loops = [r for r in rows if r["mode"] == "loop"]
     if loops:
