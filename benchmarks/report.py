@@ -20,6 +20,7 @@ SECTIONS = (("sampling", "One-call N-sample latency (the paper's sample-times ta
             ("train_step", "Train-step throughput"),
             ("sampling_shapes", "One-call N-sample latency at the PyTorch comparison's shapes (paper size)"),
             ("train_step_shapes", "Train-step throughput at the PyTorch comparison's shapes (paper size)"),
+            ("compute_dtype", "Throughput changes, before / after (interleaved, one run)"),
             ("profile", "Where the time goes: profile by model part (jax.profiler trace)"),
             ("precision", "bf16 vs float32: sample statistics of trained runs"),
             ("rollout", "Closed-loop rollout throughput (MJX, policy in the loop)"),

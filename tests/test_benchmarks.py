@@ -348,3 +348,24 @@ def test_profile_benchmark(tmp_path):
         assert r["parts_ms"].get("convolution", 0) > 0
     assert by["train"]["parts_ms"].get("optimizer + EMA", 0) > 0 and "optimizer + EMA" not in by["sample"]["parts_ms"]
     assert any(k.endswith("(backward)") for k in by["train"]["passes_ms"])
+
+
+@pytest.mark.slow
+def test_compute_dtype_benchmark(tmp_path):
+    """The interleaved before / after: three train-step variants with the same loss, two sampler variants whose
+    samples differ by bf16 rounding only."""
+    from benchmarks import compute_dtype
+
+    res = compute_dtype.main(["--quick", "--out-dir", str(tmp_path)])
+    rows = _load(tmp_path, "compute_dtype")["rows"]
+    assert [(r["workload"], r["variant"]) for r in rows] == [
+        ("train", "where guard"), ("train", "float32"), ("train", "bfloat16"), ("sample", "float32"),
+        ("sample", "bfloat16")]
+    train = [r for r in res["rows"] if r["workload"] == "train"]
+    assert train[0]["loss"] == pytest.approx(train[1]["loss"], rel=1e-5)  # the guard changes no number
+    assert train[2]["loss"] == pytest.approx(train[1]["loss"], rel=2e-2)
+    diffs = [r["max_abs_diff_to_float32"] for r in res["rows"] if r["workload"] == "sample"]
+    assert diffs[0] == 0 and 0 < diffs[1] < 0.1
+    for r in rows:
+        _finite(r, ["median_s", "speedup"])
+        assert len(r["times_s"]) == r["rounds"] == 2
