@@ -284,7 +284,7 @@ def test_export_and_serve_entry_points(run_dir, tmp_path):
         with PolicyClient(f"ws://127.0.0.1:{port}") as client:
             assert client.infer({"state": np.zeros((7, 7), np.float32)}, seed=0)["actions"].shape == (8, 4)
         proc.send_signal(signal.SIGINT)
-        rest, _ = proc.communicate(timeout=180)
+        rest, _ = proc.communicate(timeout=60)
         assert proc.returncode == 0 and "stopped after 2 requests (0 errors)" in rest, rest
     finally:
         proc.kill()

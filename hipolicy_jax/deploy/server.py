@@ -12,6 +12,7 @@ before it is read into memory.
 from __future__ import annotations
 
 import asyncio
+import signal
 import concurrent.futures
 import threading
 import time
@@ -99,7 +100,12 @@ class PolicyServer:
         self._worker.shutdown(wait=False)
 
     def run(self) -> None:
-        """Serve in this thread until ``stop()`` (from another thread) or Ctrl-C."""
+        """Serve in this thread until ``stop()`` (from another thread) or Ctrl-C / SIGINT.
+
+        In the main thread SIGINT is set to raise ``KeyboardInterrupt`` first: a process started in the background
+        by a non-interactive shell (``cmd &``) inherits SIGINT as *ignored*, and ``kill -INT`` would not stop it."""
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.default_int_handler)
         asyncio.run(self.serve_async())
 
     def stop(self) -> None:
