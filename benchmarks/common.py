@@ -88,6 +88,19 @@ def bench_models(args) -> list[BenchModel]:
     return [m._replace(changes={**m.changes, "model.compute_dtype": dt}) for m in models for dt in dtypes]
 
 
+def peer_shape_args(args, **quick):
+    """The default model set of the paper-size benchmarks: the PyTorch comparison's DP low-dim and HiPolicy shapes
+    on a CPU unless ``--shapes`` / ``--sizes`` say otherwise; with ``--quick`` the tiny size and ``quick``'s
+    attribute values (the smoke tests). Returns ``args``."""
+    if args.quick:
+        args.shapes, args.sizes = None, ["tiny"]
+        for name, value in quick.items():
+            setattr(args, name, value)
+    elif args.shapes is None and device_kind() == "cpu" and args.sizes == ["cpu"]:
+        args.shapes = ["dp-lowdim", "hipolicy"]
+    return args
+
+
 def device_kind() -> str:
     """``cpu``, ``gpu`` or ``tpu``: the default backend, used in result file names."""
     return jax.default_backend()

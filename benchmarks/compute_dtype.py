@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from benchmarks.common import base_parser, bench_models, device_kind, markdown_table, report_rows
+from benchmarks.common import base_parser, bench_models, markdown_table, peer_shape_args, report_rows
 from benchmarks.sampling import compiled_sampler
 from benchmarks.train_step import train_setup
 from hipolicy_jax.config import TrainConfig
@@ -42,12 +42,7 @@ def parse_args(argv=None):
     p.add_argument("--batch", type=int, default=128)
     p.add_argument("--rounds", type=int, default=5)
     p.add_argument("--quick", action="store_true", help="tiny size, N 4, batch 8, 2 rounds (the smoke test)")
-    args = p.parse_args(argv)
-    if args.shapes is None and device_kind() == "cpu" and not args.quick and args.sizes == ["cpu"]:
-        args.shapes = ["dp-lowdim", "hipolicy"]
-    if args.quick:
-        args.shapes, args.sizes, args.n, args.batch, args.rounds, args.steps = None, ["tiny"], 4, 8, 2, 2
-    return args
+    return peer_shape_args(p.parse_args(argv), n=4, batch=8, rounds=2, steps=2)
 
 
 def where_guard_step(net, cfg, train_cfg: TrainConfig, tx):

@@ -35,7 +35,7 @@ import time
 
 import jax
 
-from benchmarks.common import base_parser, bench_models, device_kind, markdown_table, report_rows
+from benchmarks.common import base_parser, bench_models, markdown_table, peer_shape_args, report_rows
 from benchmarks.sampling import compiled_sampler
 from benchmarks.train_step import train_setup
 
@@ -55,12 +55,7 @@ def parse_args(argv=None):
     p.add_argument("--calls", type=int, default=3, help="traced calls per workload (after one warm-up)")
     p.add_argument("--workloads", nargs="+", default=["sample", "train"], choices=["sample", "train"])
     p.add_argument("--quick", action="store_true", help="tiny size, N 4, batch 8, one call (the smoke test)")
-    args = p.parse_args(argv)
-    if args.shapes is None and device_kind() == "cpu" and not args.quick and args.sizes == ["cpu"]:
-        args.shapes = ["dp-lowdim", "hipolicy"]
-    if args.quick:
-        args.shapes, args.sizes, args.n, args.batch, args.calls, args.steps = None, ["tiny"], 4, 8, 1, 2
-    return args
+    return peer_shape_args(p.parse_args(argv), n=4, batch=8, calls=1, steps=2)
 
 
 class HloIndex:
