@@ -49,8 +49,8 @@ from hipolicy_jax.config import PolicyConfig
 from hipolicy_jax.envs import TASK_PRECISE
 from hipolicy_jax.evaluation import stats
 from hipolicy_jax.runs.budgets import BUDGETS, DP, REGIMES, regime_changes, run_config
-from hipolicy_jax.runs.campaign import (README_BEGIN, README_END, Campaign, Column, choose_low_regime, pilot_candidates,
-                                        readme_section, update_readme)
+from hipolicy_jax.runs.campaign import (README_BEGIN, README_END, Campaign, Column, Job, choose_low_regime,
+                                        pilot_candidates, readme_section, schedule, update_readme)
 from hipolicy_jax.runs.store import write_json
 from hipolicy_jax.runs.train import RunConfig
 
@@ -722,11 +722,9 @@ def protocol_tables(args: "CampaignArgs") -> list[PaperArgs]:
     return tables
 
 
-def campaign_table(args: "CampaignArgs") -> str:
-    """Every evaluation of the protocol's tables under ONE progress bar (with its ETA), each kept in its run's record
-    as it finishes, then every table rebuilt from the records; → the path of the campaign's index."""
-    camp = campaign(args)
-    tables = protocol_tables(args)
+def campaign_jobs(args: "CampaignArgs", tables: list[PaperArgs]) -> tuple[list[Job], set[str]]:
+    """Every (task, column, seed, regime changes) evaluation of the tables, in ``campaign.schedule``'s order, and
+    the tasks skipped because the pilot has not chosen their Rlow yet."""
     jobs, skipped = [], set()
     for t in tables:
         for col in COLUMNS[table_name(t)](t):
@@ -736,9 +734,16 @@ def campaign_table(args: "CampaignArgs") -> str:
                 except ValueError:
                     skipped.add(f"{task} ({t.regime}: no pilot choice yet)")
                     continue
-                jobs += [(task, col, seed, changes) for seed in column_seeds(t, col)]
-    jobs = list(dict.fromkeys((task, col, seed, tuple(sorted(ch.items()))) for task, col, seed, ch in jobs))
-    jobs.sort(key=lambda job: job[1].obs_type != "state")  # the cheap state columns first, then DP3 (stable)
+                jobs += [Job(task, col, seed, tuple(sorted(changes.items()))) for seed in column_seeds(t, col)]
+    return schedule(jobs, tuple(args.seeds)), skipped
+
+
+def campaign_table(args: "CampaignArgs") -> str:
+    """Every evaluation of the protocol's tables under ONE progress bar (with its ETA), each kept in its run's record
+    as it finishes, then every table rebuilt from the records; → the path of the campaign's index."""
+    camp = campaign(args)
+    tables = protocol_tables(args)
+    jobs, skipped = campaign_jobs(args, tables)
     bar = tqdm(jobs, desc="campaign", unit="eval", disable=not args.progress, dynamic_ncols=True)
     for task, col, seed, changes in bar:
         bar.set_postfix_str(f"{task} seed {seed} {col.label} {dict(changes) or 'r100'}")

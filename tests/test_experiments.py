@@ -20,7 +20,7 @@ from hipolicy_jax.config import InferenceConfig
 from experiments import calibrate, evaluate, paper
 from hipolicy_jax import envs, jsonio
 from hipolicy_jax.runs.budgets import variant_name
-from hipolicy_jax.runs.campaign import Campaign, Column, choose_low_regime, pilot_candidates
+from hipolicy_jax.runs.campaign import Campaign, Column, choose_low_regime, pilot_candidates, schedule
 from hipolicy_jax.runs.cli import parse_with_run_inference
 from hipolicy_jax.runs.store import load_run, make_evaluator
 from hipolicy_jax.runs.train import train
@@ -409,6 +409,21 @@ def test_campaign_follows_the_protocol():
     assert paper.column_seeds(main, dp) == (0, 1, 2, 3, 4) and paper.column_seeds(main, hip) == (0, 1, 2)
     assert paper.column_seeds(main, dp3) == paper.column_seeds(main, dp3_hip) == (0, 1, 2)  # > 5 min a run
     assert paper.parse_args(shlex.split(paper.command_line(args))[3:]) == args
+
+
+def test_campaign_schedule_completes_paired_comparisons_first():
+    """The campaign runs each job once: state before point clouds, the protocol's seeds before the baselines'
+    extra seeds, the task with the longest episodes (pick_place) last, else in table order."""
+    args = paper.parse_args(["campaign", "--budget", "smoke"])
+    jobs, skipped = paper.campaign_jobs(args, paper.protocol_tables(args))
+    assert not skipped and len(jobs) == len(set(jobs))
+    stage = [(j.col.obs_type != "state", j.seed not in args.seeds, j.task == "pick_place") for j in jobs]
+    assert stage == sorted(stage) and len(set(stage)) == 6  # point clouds have no extra seeds
+    first = [(j.task, j.col.label, j.seed) for j in jobs[:4]]
+    assert first == [("press_button", "DP", 0), ("press_button", "DP", 1), ("press_button", "DP", 2),
+                     ("stack_cubes", "DP", 0)]
+    assert {j.col.obs_type for j in jobs[-6:]} == {"pointcloud"} and jobs[-1].task == "pick_place"
+    assert schedule([jobs[0], jobs[0]], (0,)) == [jobs[0]]
 
 
 def test_readme_section_from_table_files(tmp_path):

@@ -35,6 +35,13 @@ def make(task_name: str, **overrides) -> MjxEnv:
     return _REGISTRY[task_name](**overrides)
 
 
+def episode_limit(task_name: str) -> int:
+    """The task's default episode step limit (``max_steps``)."""
+    if task_name not in _REGISTRY:
+        raise ValueError(f"task_name: must be one of {TASKS}, got {task_name!r}")
+    return _REGISTRY[task_name].default_max_steps
+
+
 def encoder_env_kwargs(encoder: EncoderConfig) -> dict:
     """``make`` / ``collect_demos`` keywords for a policy with this encoder: the ``obs_keys`` it reads and, for
     vision, the ``camera`` (``camera.CameraConfig``): images of ``image_size`` pixels square, or ``num_points`` points
@@ -54,5 +61,5 @@ def make_for_encoder(task_name: str, encoder: EncoderConfig = EncoderConfig(), *
     return make(task_name, **{**encoder_env_kwargs(encoder), **overrides})
 
 
-__all__ = ["TASKS", "TASK_PRECISE", "make", "make_for_encoder", "encoder_env_kwargs", "MjxEnv", "State",
+__all__ = ["TASKS", "TASK_PRECISE", "make", "make_for_encoder", "encoder_env_kwargs", "episode_limit", "MjxEnv", "State",
            "ExpertPlan"]

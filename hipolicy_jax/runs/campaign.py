@@ -22,7 +22,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from hipolicy_jax import jsonio
+from hipolicy_jax import envs, jsonio
 from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.evaluation import calibration
 from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
@@ -144,6 +144,27 @@ class Campaign:
                   **run_summary(run), "evaluations": {**record.get("evaluations", {}), key: evaluation}}
         write_json(path, record)
         return evaluation
+
+
+class Job(NamedTuple):
+    """One evaluation of a campaign: the (task, seed) run of a column, trained under ``changes`` (the regime's)."""
+
+    task: str
+    col: Column
+    seed: int
+    changes: tuple[tuple[str, Any], ...] = ()
+
+
+def schedule(jobs: list[Job], main_seeds: tuple[int, ...]) -> list[Job]:
+    """The campaign's order, so that every session's work completes paired comparisons soonest: the jobs without
+    duplicates, then (stable, else in table order) state before point clouds (DP3 runs cost 5-10x more), the
+    protocol's seeds before the baselines' extra seeds, and the task with the longest episodes (the costliest
+    evaluations and training) last."""
+    jobs = list(dict.fromkeys(jobs))
+    limits = {task: envs.episode_limit(task) for task in {j.task for j in jobs}}
+    longest = max(limits.values(), default=0)
+    costly = {task for task, n in limits.items() if n == longest and len(set(limits.values())) > 1}
+    return sorted(jobs, key=lambda j: (j.col.obs_type != "state", j.seed not in main_seeds, j.task in costly))
 
 
 README_BEGIN = "<!-- campaign tables: written by `python -m experiments.paper campaign` from results/*.md -->"
