@@ -23,6 +23,7 @@ from hipolicy_jax import envs
 from hipolicy_jax.data.replay_buffer import ReplayBuffer
 from hipolicy_jax.envs import camera as camera_lib
 from hipolicy_jax.envs import demos
+from hipolicy_jax.runs.cli import enable_compilation_cache
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -70,4 +71,5 @@ def main(argv=None) -> str:
 
 
 if __name__ == "__main__":
+    enable_compilation_cache()
     main()

@@ -25,7 +25,7 @@ import os
 from typing import Literal
 
 from hipolicy_jax.config import InferenceConfig
-from hipolicy_jax.runs.cli import run_main
+from hipolicy_jax.runs.cli import enable_compilation_cache, run_main
 from hipolicy_jax.runs.evaluate import evaluate_run
 from hipolicy_jax.runs.store import load_run, with_compute_dtype
 
@@ -71,4 +71,5 @@ def main(args: EvaluateArgs) -> dict:
 
 
 if __name__ == "__main__":
+    enable_compilation_cache()
     run_main(EvaluateArgs, main, __doc__)

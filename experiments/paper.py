@@ -51,6 +51,7 @@ from hipolicy_jax.evaluation import stats
 from hipolicy_jax.runs.budgets import BUDGETS, DP, REGIMES, regime_changes, run_config
 from hipolicy_jax.runs.campaign import (README_BEGIN, README_END, Campaign, Column, Job, choose_low_regime,
                                         pilot_candidates, readme_section, schedule, update_readme)
+from hipolicy_jax.runs.cli import enable_compilation_cache
 from hipolicy_jax.runs.store import write_json
 from hipolicy_jax.runs.train import RunConfig
 
@@ -790,4 +791,5 @@ def main(args: PaperArgs) -> str:
 
 
 if __name__ == "__main__":
+    enable_compilation_cache()
     main(parse_args(sys.argv[1:]))

@@ -16,7 +16,7 @@ from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.deploy import protocol
 from hipolicy_jax.deploy.backend import ExportedBackend, InProcessBackend
 from hipolicy_jax.deploy.server import PolicyServer
-from hipolicy_jax.runs.cli import run_main
+from hipolicy_jax.runs.cli import enable_compilation_cache, run_main
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,4 +47,5 @@ def main(args: ServeArgs) -> None:
 
 
 if __name__ == "__main__":
+    enable_compilation_cache()
     run_main(ServeArgs, main, __doc__)

@@ -8,6 +8,8 @@ import math
 import os
 import re
 import shlex
+import subprocess
+import sys
 
 import imageio.v3 as iio
 import jax
@@ -470,3 +472,35 @@ def test_evaluate_compute_dtype_rebuilds_the_network_only(tiny):
     ref = np.asarray(base.policy.net.apply(base.policy.params, obs, x, t))
     out = low.policy.net.apply(base.policy.params, obs, x, t)
     assert out.dtype == np.float32 and 0 < np.abs(np.asarray(out) - ref).max() < 0.05 * np.abs(ref).max()
+
+
+_CACHE_PROBE = """
+import jax, jax.numpy as jnp
+from jax import monitoring
+from hipolicy_jax.runs.cli import enable_compilation_cache
+hits = []
+monitoring.register_event_listener(lambda event, **kw: hits.append(event) if "cache_hits" in event else None)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+print("dir", enable_compilation_cache())
+jax.jit(lambda x: jnp.sin(x) @ x.T + 3.0)(jnp.ones((8, 8))).block_until_ready()
+print("hits", len(hits))
+"""
+
+
+def test_compilation_cache_is_shared_across_processes(tmp_path):
+    """Entry points keep compiled executables on disk: a second process loads what the first compiled;
+    JAX_COMPILATION_CACHE_DIR chooses the folder (unset: $XDG_CACHE_HOME/hipolicy_jax/xla), empty turns it off."""
+    def probe(**env):
+        base = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+        out = subprocess.run([sys.executable, "-c", _CACHE_PROBE], env={**base, **env}, capture_output=True,
+                             text=True, check=True).stdout.split("\n")
+        return out[0].split(" ", 1)[1], int(out[1].split()[1])
+
+    xdg = tmp_path / "xdg"
+    assert probe(XDG_CACHE_HOME=str(xdg)) == (str(xdg / "hipolicy_jax" / "xla"), 0)
+    assert os.listdir(xdg / "hipolicy_jax" / "xla")  # the executable is on disk
+    assert probe(XDG_CACHE_HOME=str(xdg))[1] >= 1  # ... and the next process loads it
+    named = tmp_path / "named"
+    assert probe(JAX_COMPILATION_CACHE_DIR=str(named)) == (str(named), 0) and os.listdir(named)
+    assert probe(JAX_COMPILATION_CACHE_DIR="", XDG_CACHE_HOME=str(tmp_path / "off")) == ("None", 0)
+    assert not (tmp_path / "off").exists()

@@ -1,5 +1,6 @@
-"""Command-line parsing shared by the entry points that act on a trained run (``experiments.evaluate``,
-``experiments.calibrate``): their ``--inference.*`` flags default to the run's stored settings."""
+"""What the entry points share: the command-line parsing of those that act on a trained run
+(``experiments.evaluate``, ``experiments.calibrate``, ...: their ``--inference.*`` flags default to the run's stored
+settings) and the persistent compilation cache every entry point turns on."""
 
 from __future__ import annotations
 
@@ -9,11 +10,37 @@ import os
 import sys
 from typing import Callable, TypeVar
 
+import jax
 import tyro
 
 from hipolicy_jax.runs.store import read_inference, resolve_run
 
 T = TypeVar("T")
+
+
+CACHE_ENV = "JAX_COMPILATION_CACHE_DIR"  # JAX's own variable: JAX reads it at import
+
+
+def default_cache_dir() -> str:
+    """``$XDG_CACHE_HOME/hipolicy_jax/xla`` (``~/.cache/...`` without XDG_CACHE_HOME)."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "hipolicy_jax", "xla")
+
+
+def enable_compilation_cache() -> str | None:
+    """Keep compiled XLA executables on disk across processes: a second ``experiments.evaluate`` of a policy, the
+    next seed of a campaign or a resumed training loads its rollout, sampler and train step instead of compiling
+    them again (30-50 s for a rollout on 2 CPU cores). ``JAX_COMPILATION_CACHE_DIR`` names the folder (an empty
+    value turns the cache off); unset, it is ``default_cache_dir()``. Entries are ~1 MB each and the folder can be
+    deleted at any time. Call before the first compilation. → the folder, or None when off."""
+    if CACHE_ENV in os.environ:
+        path = os.environ[CACHE_ENV] or None
+        if path:
+            jax.config.update("jax_compilation_cache_dir", path)
+    else:
+        path = default_cache_dir()
+        jax.config.update("jax_compilation_cache_dir", path)
+    return path
 
 
 def parse_with_run_inference(cls: type[T], argv: list[str] | None = None, description: str | None = None) -> T:
