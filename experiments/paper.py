@@ -49,8 +49,8 @@ from hipolicy_jax.config import PolicyConfig
 from hipolicy_jax.envs import TASK_PRECISE
 from hipolicy_jax.evaluation import stats
 from hipolicy_jax.runs.budgets import BUDGETS, DP, REGIMES, regime_changes, run_config
-from hipolicy_jax.runs.campaign import (README_BEGIN, README_END, Campaign, Column, Job, choose_low_regime,
-                                        pilot_candidates, readme_section, schedule, update_readme)
+from hipolicy_jax.runs.campaign import (README_BEGIN, README_END, Campaign, Column, CostModel, Job, choose_low_regime,
+                                        pilot_candidates, readme_section, schedule, shard, update_readme)
 from hipolicy_jax.runs.cli import enable_compilation_cache
 from hipolicy_jax.runs.store import write_json
 from hipolicy_jax.runs.train import RunConfig
@@ -110,6 +110,11 @@ class CampaignArgs(PaperArgs):
     regimes: tuple[Literal["r100", "rlow"], ...] = ("r100", "rlow")
     obs_types: tuple[ObsName, ...] = ("state", "pointcloud")  # main table in R100: DP and the DP3 columns
     readme: str = "README.md"  # its campaign section (between the markers) is rewritten from the tables; '' = leave it
+    plan: bool = False  # write what is left (evaluations, runs to train, estimated CPU-hours) and stop
+    # K N: only the K-th (0-based) of N shards of the runs, so that N processes split the campaign — one per core
+    # (`taskset -c K`) or per machine sharing the records; every evaluation of a run is in its run's shard. A shard
+    # ends by writing the plan of what is left; build the tables with --from-records once every shard has finished
+    shard: tuple[int, int] = (0, 1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -202,7 +207,7 @@ def _table_record(camp: Campaign, task: str, col: Column, seed: int, run_changes
     run = camp.run_config(task, col, seed, run_changes).out_dir()
     training = camp.record(task, col, seed, run_changes).get("training") or {}
     return {"task": task, "seed": seed, "column": col.label, "regime": run_changes, "run": os.path.relpath(run),
-            "training_s": training.get("wall_time_s"), **{k: v for k, v in evaluation.items() if k != "settings"}}
+            "training_s": training.get("wall_time_s"), "training_cores": training.get("cpu_cores"), **{k: v for k, v in evaluation.items() if k != "settings"}}
 
 
 def collect(args: PaperArgs, columns: list[Column]) -> list[dict]:
@@ -329,12 +334,15 @@ def paired_cell(records: list[dict], seeds, tasks, new: str, base: str) -> str:
 
 def cost_note(records: list[dict]) -> str:
     """What the table's runs and evaluations cost (from the records: training wall time of each distinct run,
-    evaluation time of each evaluation), in CPU-hours of this 2-core machine kind."""
-    train_s = {r["run"]: r.get("training_s") or 0.0 for r in records}
+    evaluation time of each evaluation, each × the cores its process ran on: 2 unless the record says otherwise),
+    in CPU-hours of this 2-core machine kind."""
+    train = {r["run"]: ((r.get("training_s") or 0.0), r.get("training_cores") or 2) for r in records}
+    train_s = sum(s for s, _ in train.values())
     eval_s = sum(r.get("eval_s") or 0.0 for r in records)
-    total = sum(train_s.values()) + eval_s
-    return (f"Cost: {total / 3600 * 2:.1f} CPU-hours on 2 cores ({sum(train_s.values()) / 3600:.1f} h training "
-            f"{len(train_s)} runs, {eval_s / 3600:.1f} h evaluating), from the records.")
+    cpu_h = (sum(s * c for s, c in train.values()) + sum((r.get("eval_s") or 0.0) * (r.get("cpu_cores") or 2)
+                                                          for r in records)) / 3600
+    return (f"Cost: {cpu_h:.1f} CPU-hours on this 2-core machine kind (wall time × the cores each process ran on; "
+            f"{train_s / 3600:.1f} h training {len(train)} runs, {eval_s / 3600:.1f} h evaluating), from the records.")
 
 
 def results_header(title: str, args: PaperArgs, notes: list[str]) -> str:
@@ -739,16 +747,64 @@ def campaign_jobs(args: "CampaignArgs", tables: list[PaperArgs]) -> tuple[list[J
     return schedule(jobs, tuple(args.seeds)), skipped
 
 
+def write_plan(args: "CampaignArgs", costs: list[dict]) -> str:
+    """``<results>/campaign_plan.md``: what the campaign (or its shard) has left, per regime and column: evaluations, runs to train
+    and the estimated CPU-hours (the records' measured wall times × the cores their processes ran on); → its path."""
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for c in costs:
+        job = c["job"]
+        groups.setdefault((_changes_text(dict(job.changes)), f"{job.col.label} ({job.col.obs_type})"), []).append(c)
+    rows, total = [], 0.0
+    for (regime, label), cs in groups.items():
+        left = [c for c in cs if not c["done"]]
+        if not left:
+            continue
+        hours = sum(c["seconds"] or 0.0 for c in left) / 3600
+        unknown = sum(c["seconds"] is None for c in left)
+        total += hours
+        rows.append([regime, label, f"{len(cs) - len(left)}/{len(cs)}", str(sum(c["trains"] for c in left)),
+                     f"{hours:.1f}" + (f" + {unknown} unmeasured" if unknown else "")])
+    done = sum(c["done"] for c in costs)
+    lines = ["# Campaign plan", "", f"Command: `{command_line(args)}`", "",
+             (f"{done} of {len(costs)} evaluations recorded; left: about **{total:.1f} CPU-hours** "
+              "(estimated from the records' measured times: training seconds per step of the same variant, else of "
+              "its observation type; evaluation seconds of the same task and strategy)."), "",
+             markdown_table(["Regime", "Column", "Recorded", "Runs to train", "CPU-hours left"], rows)]
+    os.makedirs(args.results, exist_ok=True)
+    path = os.path.join(args.results, "campaign_plan.md")
+    with open(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+    return path
+
+
 def campaign_table(args: "CampaignArgs") -> str:
     """Every evaluation of the protocol's tables under ONE progress bar (with its ETA), each kept in its run's record
     as it finishes, then every table rebuilt from the records; → the path of the campaign's index."""
     camp = campaign(args)
     tables = protocol_tables(args)
     jobs, skipped = campaign_jobs(args, tables)
-    bar = tqdm(jobs, desc="campaign", unit="eval", disable=not args.progress, dynamic_ncols=True)
-    for task, col, seed, changes in bar:
-        bar.set_postfix_str(f"{task} seed {seed} {col.label} {dict(changes) or 'r100'}")
+    k, n = args.shard
+    if not 0 <= k < n:
+        raise ValueError(f"shard: expected K N with 0 <= K < N, got {k} {n}")
+    jobs = shard(jobs, k, n, lambda job: camp.run_config(job.task, job.col, job.seed, dict(job.changes)).out_dir())
+    costs = CostModel(args.records, args.runs).estimate(camp, jobs)
+    if args.plan:
+        return write_plan(args, costs)
+    known = [c["seconds"] for c in costs if c["seconds"]]
+    guess = float(np.median(known)) if known else 1.0  # a job nothing measured yet
+    # the bar counts estimated seconds of work (recorded jobs cost 0), so its ETA is the measured rate at which
+    # the estimate is worked off: it corrects itself as runs finish faster or slower than their records said
+    bar = tqdm(total=round(sum(guess if c["seconds"] is None else c["seconds"] for c in costs)), desc="campaign",
+               unit="s", disable=not args.progress, dynamic_ncols=True,
+               bar_format="{l_bar}{bar}| {percentage:.0f}% of the estimated work [{elapsed}<{remaining}] {postfix}")
+    for i, c in enumerate(costs):
+        task, col, seed, changes = c["job"]
+        bar.set_postfix_str(f"{i + 1}/{len(costs)}: {task} seed {seed} {col.label} {_changes_text(dict(changes))}")
         camp.evaluate(task, col, seed, dict(changes))
+        bar.update(round(guess if c["seconds"] is None else c["seconds"]))
+    bar.close()
+    if n > 1:
+        return write_plan(args, CostModel(args.records, args.runs).estimate(camp, jobs))
     paths = []
     for t in tables:  # a regime's table holds the tasks the pilot has chosen its demos for
         ready = tuple(task for task in t.tasks if t.regime == "r100" or task in REGIMES[t.regime])
@@ -792,4 +848,7 @@ def main(args: PaperArgs) -> str:
 
 if __name__ == "__main__":
     enable_compilation_cache()
-    main(parse_args(sys.argv[1:]))
+    try:
+        main(parse_args(sys.argv[1:]))
+    except (ValueError, FileNotFoundError) as e:
+        raise SystemExit(f"error: {e}")

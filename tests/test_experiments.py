@@ -9,6 +9,7 @@ import os
 import re
 import shlex
 import subprocess
+from pathlib import Path
 import sys
 
 import imageio.v3 as iio
@@ -21,8 +22,9 @@ from hipolicy_jax.config import InferenceConfig
 
 from experiments import calibrate, evaluate, paper
 from hipolicy_jax import envs, jsonio
-from hipolicy_jax.runs.budgets import variant_name
-from hipolicy_jax.runs.campaign import Campaign, Column, choose_low_regime, pilot_candidates, schedule
+from hipolicy_jax.runs.budgets import BUDGETS, DP, variant_name
+from hipolicy_jax.runs.campaign import (Campaign, Column, CostModel, Job, choose_low_regime, pilot_candidates,
+                                        schedule, shard)
 from hipolicy_jax.runs.cli import parse_with_run_inference
 from hipolicy_jax.runs.store import load_run, make_evaluator
 from hipolicy_jax.runs.train import train
@@ -312,6 +314,8 @@ def test_campaign_records_an_evaluation_and_rebuilds_from_it(tiny, tmp_path):
     record = _load(path)
     assert record["task"] == TASK and record["seed"] == 0 and record["policy"]["chunk"]["strides"] == [1, 2, 3]
     assert record["calibration"]["thresholds"] == _load(os.path.join(run, "calibration.json"))["thresholds"]
+    cores = len(os.sched_getaffinity(0))  # the cost accounting: wall time x the cores the process ran on
+    assert record["training"]["cpu_cores"] == evaluation["cpu_cores"] == cores
     same = json.dumps([evaluation], sort_keys=True)  # NaN-safe equality
     assert json.dumps(list(record["evaluations"].values()), sort_keys=True) == same
     offline = Campaign("smoke", runs=str(tmp_path / "no_runs"), records=str(tmp_path / "records"), episodes=2,
@@ -426,6 +430,52 @@ def test_campaign_schedule_completes_paired_comparisons_first():
                      ("stack_cubes", "DP", 0)]
     assert {j.col.obs_type for j in jobs[-6:]} == {"pointcloud"} and jobs[-1].task == "pick_place"
     assert schedule([jobs[0], jobs[0]], (0,)) == [jobs[0]]
+
+
+def test_campaign_shards_split_runs_and_the_plan_estimates_from_records(tmp_path, capsys):
+    """--shard K N splits the jobs by run (disjoint, complete, balanced, no run in two shards); the cost model
+    estimates a pending job from the records' CPU-seconds (wall × cores): training per step of the variant, else of
+    the observation type, plus the evaluation of the task and strategy; recorded jobs, evaluations another column
+    shares and unmeasured observation types are told apart; the plan file sums it."""
+    args = paper.parse_args(["campaign", "--budget", "smoke", "--runs", str(tmp_path / "runs"), "--records",
+                             str(tmp_path / "records"), "--results", str(tmp_path / "results"), "--no-progress"])
+    camp = paper.campaign(args)
+    jobs, _ = paper.campaign_jobs(args, paper.protocol_tables(args))
+    def run_of(j):
+        return camp.run_config(j.task, j.col, j.seed, dict(j.changes)).out_dir()
+
+    parts = [shard(jobs, k, 3, run_of) for k in range(3)]
+    assert sorted(id(j) for p in parts for j in p) == sorted(map(id, jobs))  # each job in exactly one shard
+    runs = [{run_of(j) for j in p} for p in parts]
+    assert not (runs[0] & runs[1] or runs[0] & runs[2] or runs[1] & runs[2])
+    assert max(map(len, runs)) - min(map(len, runs)) <= 1
+
+    dp, te = Column("DP", changes=DP), Column("DP+TE", changes=DP, execution="te")
+    hip, dp3 = Column("DP+HiPolicy"), Column("DP3", "pointcloud", DP)
+    key0 = camp._key(dp, 0)[1]
+    record = {"training": {"steps": 10, "wall_time_s": 100.0, "cpu_cores": 1},
+              "evaluations": {key0: {"settings": json.loads(key0), "eval_s": 5.0, "cpu_cores": 2}}}
+    path = tmp_path / "records" / "smoke" / "press_button" / "state" / "dp" / "seed0.json"
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps(record))
+    model = CostModel(str(tmp_path / "records"), str(tmp_path / "runs"))
+    todo = [Job("press_button", dp, 0), Job("press_button", dp, 1), Job("press_button", te, 1),
+            Job("press_button", Column("w/o Hier.", changes=DP), 1), Job("stack_cubes", hip, 0),
+            Job("stack_cubes", dp3, 0)]
+    rows = model.estimate(camp, todo)
+    steps = BUDGETS["smoke"].train.num_steps
+    assert [(r["done"], r["trains"], r["seconds"]) for r in rows] == [
+        (True, False, 0.0),  # recorded
+        (False, True, 10.0 * steps + 10.0),  # trains (10 CPU-s per step) and evaluates (5 s on 2 cores)
+        (False, False, 10.0),  # the same run, another strategy: the task's evaluations
+        (False, False, 0.0),  # the same evaluation as DP's seed 1 under another table's label
+        (False, True, 10.0 * steps + 10.0),  # no hipolicy record: the state runs' per-step time
+        (False, True, None)]  # no point-cloud record at all: unmeasured
+    text = Path(paper.write_plan(args, rows)).read_text()
+    assert "1 of 6 evaluations recorded" in text and "1 unmeasured" in text
+    assert f"{(2 * (10.0 * steps + 10.0) + 10.0) / 3600:.1f} CPU-hours" in text
+    with pytest.raises(ValueError, match="shard: expected K N with 0 <= K < N, got 2 2"):
+        paper.campaign_table(dataclasses.replace(args, shard=(2, 2)))
 
 
 def test_readme_section_from_table_files(tmp_path):

@@ -15,9 +15,11 @@ seeds of a variant compile once, and the held-out entropies of each run.
 from __future__ import annotations
 
 import dataclasses
+import glob
 import json
 import os
 import time
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -29,7 +31,7 @@ from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
 from hipolicy_jax.runs.budgets import BUDGETS, run_config
 from hipolicy_jax.runs.calibrate import run_entropies
 from hipolicy_jax.runs.store import Run, eval_key, make_evaluator, read_json, write_json
-from hipolicy_jax.runs.train import RunConfig, ensure_trained
+from hipolicy_jax.runs.train import RunConfig, cpu_cores, ensure_trained, finished
 
 RECORD_VERSION = 1
 
@@ -73,7 +75,7 @@ def run_summary(run: Run) -> dict:
     return {"task": run.task, "seed": run.seed, "checkpoint_step": run.policy.step, "policy": meta["policy"],
             "train": meta["train"], "data": os.path.relpath(meta.get("data", "")), "val_ratio": meta.get("val_ratio"),
             "param_count": meta.get("param_count"),
-            "training": {k: summary.get(k) for k in ("steps", "final_loss", "wall_time_s")},
+            "training": {k: summary.get(k) for k in ("steps", "final_loss", "wall_time_s", "cpu_cores")},
             "calibration": {k: calib.get(k) for k in ("thresholds", "percentiles", "num_windows", "inference")}}
 
 
@@ -114,6 +116,14 @@ class Campaign:
         path = record_path(self.records, self.runs, self.run_config(task, col, seed, run_changes))
         return read_json(path) if os.path.exists(path) else {}
 
+    def recorded(self, task: str, col: Column, seed: int, run_changes: dict | None = None) -> bool:
+        """Whether the (task, seed) run's record holds this column's evaluation."""
+        return self._key(col, seed)[1] in self.record(task, col, seed, run_changes).get("evaluations", {})
+
+    def _key(self, col: Column, seed: int) -> tuple[InferenceConfig, str]:
+        inference = dataclasses.replace(self.inference, execution=col.execution)
+        return inference, evaluation_key(inference, col, self.episodes, seed)
+
     def evaluate(self, task: str, col: Column, seed: int, run_changes: dict | None = None) -> dict | None:
         """The column's evaluation of the (task, seed) run: ``eval_summary`` plus per-episode ``success`` /
         ``steps`` / ``decisions`` and the ``thresholds``; from the record, else trained / evaluated and recorded.
@@ -121,8 +131,7 @@ class Campaign:
         cfg = self.run_config(task, col, seed, run_changes)
         path = record_path(self.records, self.runs, cfg)
         record = read_json(path) if os.path.exists(path) else {}
-        inference = dataclasses.replace(self.inference, execution=col.execution)
-        key = evaluation_key(inference, col, self.episodes, seed)
+        inference, key = self._key(col, seed)
         if key in record.get("evaluations", {}):
             return record["evaluations"][key]
         if self.from_records:
@@ -138,7 +147,8 @@ class Campaign:
                       "thresholds": None if thresholds is None else [float(t) for t in thresholds],
                       "success": [bool(x) for x in np.asarray(result.success)],
                       "steps": [int(x) for x in np.asarray(result.steps)],
-                      "decisions": [int(x) for x in valid.sum(axis=1)], "eval_s": time.perf_counter() - t0}
+                      "decisions": [int(x) for x in valid.sum(axis=1)], "eval_s": time.perf_counter() - t0,
+                      "cpu_cores": cpu_cores()}
         evaluation = jsonio.loads(jsonio.dumps(evaluation))  # as records hold it (NaN: None), fresh or reread
         record = {"version": RECORD_VERSION, "budget": self.budget, "run_dir": os.path.relpath(run.run_dir),
                   **run_summary(run), "evaluations": {**record.get("evaluations", {}), key: evaluation}}
@@ -165,6 +175,79 @@ def schedule(jobs: list[Job], main_seeds: tuple[int, ...]) -> list[Job]:
     longest = max(limits.values(), default=0)
     costly = {task for task, n in limits.items() if n == longest and len(set(limits.values())) > 1}
     return sorted(jobs, key=lambda j: (j.col.obs_type != "state", j.seed not in main_seeds, j.task in costly))
+
+
+def shard(jobs: list[Job], k: int, n: int, run_of: Callable[[Job], str]) -> list[Job]:
+    """The jobs of shard ``k`` of ``n``: runs (``run_of(job)``, its run dir) go to shards in turn in the order they
+    first appear, so each shard gets a like share of every stage of ``schedule`` and a run is trained and evaluated
+    by one shard only (no two processes on one run dir)."""
+    runs: dict[str, int] = {}
+    for job in jobs:
+        runs.setdefault(run_of(job), len(runs) % n)
+    return [job for job in jobs if runs[run_of(job)] == k]
+
+
+class CostModel:
+    """CPU-seconds a campaign's pending evaluation will take (wall time × the cores its process ran on, 2 where a
+    record does not say), from the measured times the records hold: the run's
+    training when it has none yet (seconds per step of the same variant on the same task, else of the variant on
+    any task, else of any run of the observation type, × the run's steps), plus the evaluation (the same task and
+    execution strategy, else the task, else any); 0 for an evaluation another table's column already makes. Medians,
+    so a run slowed by other jobs does not skew them; None when no record of the observation type exists yet."""
+
+    def __init__(self, records: str, runs: str):
+        self.records, self.runs = records, runs
+        self._train: list[tuple[tuple[str, str, str], float]] = []  # ((task, obs, variant), seconds per step)
+        self._eval: list[tuple[tuple[str, str], float]] = []  # ((task, execution), seconds)
+        for path in glob.glob(os.path.join(records, "**", "*.json"), recursive=True):
+            rec = read_json(path)
+            parts = os.path.relpath(path, records).split(os.sep)
+            if len(parts) < 5 or "training" not in rec:
+                continue
+            task, obs, variant = parts[-4], parts[-3], parts[-2]
+            steps, wall = rec["training"].get("steps"), rec["training"].get("wall_time_s")
+            if steps and wall:
+                self._train.append(((task, obs, variant), wall * (rec["training"].get("cpu_cores") or 2) / steps))
+            for ev in rec.get("evaluations", {}).values():
+                if ev.get("eval_s"):
+                    self._eval.append(((task, ev["settings"]["execution"]), ev["eval_s"] * (ev.get("cpu_cores") or 2)))
+
+    @staticmethod
+    def _median(rows, *matches) -> float | None:
+        """The median of the first non-empty selection: rows whose key matches ``m`` where ``m`` is not None."""
+        for match in matches:
+            vals = [v for key, v in rows if all(m is None or k == m for k, m in zip(key, match))]
+            if vals:
+                return float(np.median(vals))
+        return None
+
+    def train_seconds(self, cfg: RunConfig) -> float | None:
+        parts = os.path.relpath(cfg.out_dir(), self.runs).split(os.sep)
+        task, obs, variant = parts[-4], parts[-3], parts[-2]
+        per_step = self._median(self._train, (task, obs, variant), (None, obs, variant), (None, obs, None))
+        return None if per_step is None else per_step * cfg.train.num_steps
+
+    def eval_seconds(self, task: str, execution: str) -> float | None:
+        return self._median(self._eval, (task, execution), (task, None), (None, None))
+
+    def estimate(self, camp: Campaign, jobs: list[Job]) -> list[dict]:
+        """Per job: whether it is done (recorded), whether it trains a run, its estimated seconds (0 when done or
+        made by an earlier job; None when unmeasured)."""
+        rows, trained, evaluated = [], set(), set()
+        for job in jobs:
+            cfg = camp.run_config(job.task, job.col, job.seed, dict(job.changes))
+            done = camp.recorded(job.task, job.col, job.seed, dict(job.changes))
+            needs_train = not done and cfg.out_dir() not in trained and not finished(cfg)
+            trained.add(cfg.out_dir())
+            evaluation = (cfg.out_dir(), camp._key(job.col, job.seed)[1])  # another table's column may share it
+            seconds = 0.0
+            if not done and evaluation not in evaluated:
+                parts = [self.eval_seconds(job.task, job.col.execution)]
+                parts += [self.train_seconds(cfg)] if needs_train else []
+                seconds = None if None in parts else sum(parts)
+            evaluated.add(evaluation)
+            rows.append({"job": job, "done": done, "trains": needs_train, "seconds": seconds})
+        return rows
 
 
 README_BEGIN = "<!-- campaign tables: written by `python -m experiments.paper campaign` from results/*.md -->"

@@ -107,6 +107,11 @@ def dry_run(cfg: RunConfig) -> dict:
     return info
 
 
+def cpu_cores() -> int:
+    """The CPU cores this process may run on (its affinity: ``taskset -c 0`` → 1): CPU-hours = wall time × this."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 def prepare_out_dir(out: str) -> str:
     """Create the run directory; a path that is a file or not writable is a one-line ``ValueError``."""
     if os.path.exists(out) and not os.path.isdir(out):
@@ -201,7 +206,7 @@ def _train(cfg: RunConfig, out: str) -> dict:
                "thresholds": list(thresholds), "eval": final, "eval_episodes": cfg.eval.episodes,
                "eval_seed": cfg.train.seed,
                "final_loss": float(np.mean(result.losses[-50:])) if result.losses else None,
-               "wall_time_s": time.perf_counter() - t0, "out": os.path.abspath(out)}
+               "wall_time_s": time.perf_counter() - t0, "cpu_cores": cpu_cores(), "out": os.path.abspath(out)}
     write_json(os.path.join(out, "summary.json"), summary)
     if final is None:
         print(f"\ntrained {summary['steps']} steps; outputs in {out}")
@@ -216,13 +221,17 @@ def main(cfg: RunConfig) -> dict:
     return dry_run(cfg) if cfg.dry_run else train(cfg)
 
 
+def finished(cfg: RunConfig) -> bool:
+    """Whether the run directory holds a run trained to ``cfg.train.num_steps`` (its summary.json says so)."""
+    summary = os.path.join(cfg.out_dir(), "summary.json")
+    return os.path.exists(summary) and read_json(summary).get("steps") == cfg.train.num_steps
+
+
 def ensure_trained(cfg: RunConfig) -> Run:
     """Train (or resume) a run unless it finished already; → the loaded run. A finished run is reused whatever
     inference settings ``cfg`` has; a run of another policy config in the same directory is refused."""
     out = cfg.out_dir()
-    summary = os.path.join(out, "summary.json")
-    done = os.path.exists(summary) and read_json(summary).get("steps") == cfg.train.num_steps
-    if not done:
+    if not finished(cfg):
         print(f"[runs] training {out}", flush=True)
         train(cfg)
     run = load_run(out)
