@@ -309,6 +309,8 @@ def interval_text(iv: stats.Interval, scale: float = 1.0, digits: int = 1) -> st
 def ci(records: list[dict], metric: str, seeds, tasks, scale: float = 1.0, **match) -> str:
     """The cell of ``metric`` over ``tasks`` (one task: its seeds × episodes; several: the task average)."""
     groups = [outcomes(records, metric, seeds, task=t, **match) for t in tasks]
+    if len(groups) > 1 and not all(groups):
+        return "–"  # an average over some of the tasks is not the tasks' average
     iv = stats.bootstrap_mean(groups[0]) if len(groups) == 1 else stats.bootstrap_average(groups)
     return interval_text(iv, scale)
 
@@ -323,7 +325,7 @@ def paired_cell(records: list[dict], seeds, tasks, new: str, base: str) -> str:
         shared = sorted(set(x) & set(y))
         if shared and all(x[s].size == y[s].size > 1 for s in shared):
             diffs.append({s: x[s] - y[s] for s in shared})
-    if not diffs:
+    if len(diffs) < len(tasks):  # a task without a pair: no pooled comparison over these tasks yet
         return "–"
     iv = stats.bootstrap_mean(diffs[0]) if len(diffs) == 1 else stats.bootstrap_average(diffs)
     pooled_a = {(i, s): v for i, x in enumerate(a) for s, v in x.items()}
@@ -419,8 +421,8 @@ def _rel(base: float, new: float) -> str:
 
 
 def _task_mean(records, metric, seeds, tasks, column) -> float:
-    return stats.bootstrap_average([outcomes(records, metric, seeds, task=t, column=column) for t in tasks],
-                                   resamples=1).mean
+    groups = [outcomes(records, metric, seeds, task=t, column=column) for t in tasks]
+    return stats.bootstrap_average(groups, resamples=1).mean if all(groups) else float("nan")
 
 
 def grouped_rows(args: PaperArgs, records, columns: list[str], metric: str = "success_rate", scale: float = 100.0,
@@ -803,16 +805,25 @@ def campaign_table(args: "CampaignArgs") -> str:
         camp.evaluate(task, col, seed, dict(changes))
         bar.update(round(guess if c["seconds"] is None else c["seconds"]))
     bar.close()
-    if n > 1:
+    if n > 1:  # the other shards may still run: what is left, not the tables
         return write_plan(args, CostModel(args.records, args.runs).estimate(camp, jobs))
     paths = []
     for t in tables:  # a regime's table holds the tasks the pilot has chosen its demos for
         ready = tuple(task for task in t.tasks if t.regime == "r100" or task in REGIMES[t.regime])
         if ready:
             paths.append(BUILDERS[table_name(t)](dataclasses.replace(t, tasks=ready, from_records=True)))
+    now = CostModel(args.records, args.runs).estimate(camp, jobs)
+    left = [c for c in now if not c["done"]]
+    progress = ""
+    if left:  # an interim build (--from-records, or a campaign stopped early): say how far it got
+        plan = write_plan(args, now)
+        progress = (f"Interim: {len(jobs) - len(left)} of {len(jobs)} evaluations recorded; what is left and its "
+                    f"estimated cost: [campaign_plan.md]({{}}).")
     lines = [f"# Campaign ({args.budget})", "", f"Command: `{command_line(args)}`", "",
              f"{len(jobs)} evaluations; tables:", ""] + [f"- [{os.path.basename(p)}]({os.path.basename(p)})"
                                                            for p in paths]
+    if progress:
+        lines += ["", progress.format(os.path.basename(plan))]
     if skipped:
         lines += ["", "Not run yet: " + ", ".join(sorted(skipped))]
     index = os.path.join(args.results, "campaign.md")
@@ -821,6 +832,8 @@ def campaign_table(args: "CampaignArgs") -> str:
     if args.readme:
         readme_dir = os.path.dirname(os.path.abspath(args.readme))
         section = readme_section(paths, readme_dir)
+        if progress:
+            section = progress.format(os.path.relpath(plan, readme_dir)) + "\n\n" + section
         if skipped:
             section += "\n\nNot run yet: " + ", ".join(sorted(skipped)) + "."
         if update_readme(args.readme, section):

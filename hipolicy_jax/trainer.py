@@ -168,6 +168,26 @@ def restore_newest_readable(directory: str, abstract, meta: dict):
     return None, None
 
 
+def logged_train_seconds(out_dir: str, upto: int) -> float:
+    """Seconds the logged training steps up to ``upto`` took, from ``metrics.jsonl`` (each train row's steps since
+    the previous row / its ``steps_per_s``; a step logged twice — re-run after a resume — counts once, its latest
+    row): what earlier sessions of a resumed run spent, so a run's wall time covers all its sessions."""
+    path = os.path.join(out_dir, "metrics.jsonl")
+    if not os.path.exists(path):
+        return 0.0
+    rate: dict[int, float] = {}
+    with open(path) as f:
+        for line in f:
+            row = json.loads(line)
+            if row.get("kind") == "train" and row["step"] <= upto and row.get("steps_per_s"):
+                rate[row["step"]] = row["steps_per_s"]
+    seconds, prev = 0.0, 0
+    for step in sorted(rate):
+        seconds += (step - prev) / rate[step]
+        prev = step
+    return seconds
+
+
 class _Logger:
     """metrics.jsonl and TensorBoard; ``out_dir`` None logs nothing (the other processes of a multi-process run)."""
 

@@ -283,6 +283,14 @@ def test_table_formatting_helpers():
     recs = [{"task": "t", "seed": s, "column": "c", "success_rate": v} for s, v in ((0, 0.2), (1, 0.4))]
     assert paper.values(recs, "success_rate", (0, 1, 2), task="t", column="c")[:2] == [0.2, 0.4]
     assert math.isnan(paper.values(recs, "success_rate", (0, 1, 2), task="t", column="c")[2])
+    # an average or a pooled comparison over tasks of which one has no record yet is '–', not a partial average
+    ep = [{"task": t, "seed": 0, "column": c, "success_rate": 0.5, "success": [True, False] * 5}
+          for t, c in (("a", "base"), ("b", "base"), ("a", "new"))]
+    assert paper.ci(ep, "success_rate", (0,), ["a"], 100.0, column="new") == "50.0 [20.0, 80.0]"
+    assert paper.ci(ep, "success_rate", (0,), ["a", "b"], 100.0, column="new") == "–"
+    assert paper.ci(ep, "success_rate", (0,), ["a", "b"], 100.0, column="base") != "–"
+    assert paper.paired_cell(ep, (0,), ["a"], "new", "base").startswith("+0.0 [+0.0, +0.0], p=1")
+    assert paper.paired_cell(ep, (0,), ["a", "b"], "new", "base") == "–"
 
 
 @pytest.mark.slow

@@ -14,7 +14,7 @@ from hipolicy_jax.config import (ChunkConfig, DiffusionConfig, InferenceConfig, 
 from hipolicy_jax.data.dataset import SequenceDataset
 from hipolicy_jax.data.replay_buffer import ReplayBuffer
 from hipolicy_jax.sampling import make_sampler
-from hipolicy_jax.trainer import fit
+from hipolicy_jax.trainer import fit, logged_train_seconds
 from hipolicy_jax.training import make_optimizer, make_train_step, init_train_state
 from hipolicy_jax.models.policy_net import PolicyNet, init_policy_params
 
@@ -106,6 +106,25 @@ def test_resume_reproduces_uninterrupted_losses(dataset, tmp_path):
     assert rest.start_step == 8  # the last complete checkpoint before the stop
     np.testing.assert_allclose(rest.losses, full.losses[8:], rtol=1e-6)
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6), rest.state.params, full.state.params)
+    # a resumed run's time covers its earlier session: the logged step time up to the resume step
+    rows = [json.loads(line) for line in open(tmp_path / "resumed" / "metrics.jsonl")]
+    first = [r for r in rows if r["kind"] == "train"][:2]  # steps 4, 8 of the first session
+    expected = 4 / first[0]["steps_per_s"] + 4 / first[1]["steps_per_s"]
+    assert logged_train_seconds(str(tmp_path / "resumed"), 8) == pytest.approx(expected)
+
+
+def test_logged_train_seconds_counts_each_step_once(tmp_path):
+    """Steps since the previous train row / steps_per_s; a step re-logged after a resume counts once (its latest
+    row); eval rows, steps after ``upto`` and a missing file count nothing."""
+    rows = [(50, 5.0), (100, 10.0), (150, 5.0), (150, 10.0), (200, 2.0)]
+    with open(tmp_path / "metrics.jsonl", "w") as f:
+        for step, sps in rows:
+            f.write(json.dumps({"step": step, "kind": "train", "loss": 1.0, "steps_per_s": sps}) + "\n")
+        f.write(json.dumps({"step": 100, "kind": "eval", "success_rate": 0.5}) + "\n")
+    assert logged_train_seconds(str(tmp_path), 100) == pytest.approx(10.0 + 5.0)
+    assert logged_train_seconds(str(tmp_path), 150) == pytest.approx(10.0 + 5.0 + 5.0)
+    assert logged_train_seconds(str(tmp_path), 10_000) == pytest.approx(20.0 + 25.0)
+    assert logged_train_seconds(str(tmp_path / "none"), 100) == 0.0
 
 
 @pytest.mark.slow

@@ -29,7 +29,7 @@ from hipolicy_jax.evaluation import calibration
 from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
 from hipolicy_jax.runs.lock import RunLock
 from hipolicy_jax.runs.store import Run, eval_key, load_run, read_json, write_inference, write_json
-from hipolicy_jax.trainer import fit, run_keys
+from hipolicy_jax.trainer import fit, logged_train_seconds, run_keys
 
 # CPU-sized defaults: the paper's windowing (strides 1/2/3, L_h 3, L_c 8) with a small U-Net.
 CPU_POLICY = PolicyConfig(chunk=ChunkConfig(), model=ModelConfig(size="cpu"))
@@ -206,7 +206,9 @@ def _train(cfg: RunConfig, out: str) -> dict:
                "thresholds": list(thresholds), "eval": final, "eval_episodes": cfg.eval.episodes,
                "eval_seed": cfg.train.seed,
                "final_loss": float(np.mean(result.losses[-50:])) if result.losses else None,
-               "wall_time_s": time.perf_counter() - t0, "cpu_cores": cpu_cores(), "out": os.path.abspath(out)}
+               # this session's wall time + the logged step time of the sessions before a resume
+               "wall_time_s": time.perf_counter() - t0 + logged_train_seconds(out, result.start_step),
+               "cpu_cores": cpu_cores(), "out": os.path.abspath(out)}
     write_json(os.path.join(out, "summary.json"), summary)
     if final is None:
         print(f"\ntrained {summary['steps']} steps; outputs in {out}")
