@@ -331,6 +331,12 @@ def test_campaign_records_an_evaluation_and_rebuilds_from_it(tiny, tmp_path):
     assert json.dumps([offline.evaluate(TASK, Column("HiPolicy"), 0)], sort_keys=True) == same
     assert offline.evaluate(TASK, Column("w/o EG", guided=False), 0) is None  # not recorded: never evaluated
     assert offline.evaluate(TASK, Column("HiPolicy"), 1) is None
+    # thresholds at the calibration's own percentiles are the calibration's: the recorded evaluation is reused
+    again = camp.evaluate(TASK, Column("p10/p70", percentiles=(10.0, 70.0)), 0)
+    assert again["same_as"] == json.loads(list(record["evaluations"])[0]) and again["eval_s"] == 0.0
+    assert again["success"] == evaluation["success"] and again["thresholds"] == evaluation["thresholds"]
+    other = camp.evaluate(TASK, Column("p40/p90", percentiles=(40.0, 90.0)), 0)
+    assert "same_as" not in other and other["thresholds"] != evaluation["thresholds"]
 
 
 def test_pilot_candidates_and_choice():

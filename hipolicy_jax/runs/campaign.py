@@ -105,8 +105,12 @@ class Campaign:
         m = run.policy.cfg.chunk.num_freqs
         if m == 1 or not col.guided:
             return None
+        calib = calibration.read_calibration(run.run_dir)
         if col.percentiles is None:
-            return calibration.resolve_thresholds(self.inference, m, calibration.read_calibration(run.run_dir))[0]
+            return calibration.resolve_thresholds(self.inference, m, calib)[0]
+        if (calib is not None and calib.get("source") == "demos" and calib.get("percentiles") == list(col.percentiles)
+                and calib.get("inference") == dataclasses.asdict(self.inference.sampler_settings())):
+            return calibration.resolve_thresholds(self.inference, m, calib)[0]  # the same entropies, percentiles
         if run.run_dir not in self._entropies:
             self._entropies[run.run_dir] = run_entropies(run, self.inference, "demos", evaluator=ev)
         return calibration.calibrate_thresholds(self._entropies[run.run_dir], m, col.percentiles)
@@ -139,21 +143,38 @@ class Campaign:
         run = ensure_trained(cfg)
         ev = self._evaluator(run, inference)
         thresholds = self._thresholds(run, col, ev)
-        t0 = time.perf_counter()
-        result = ev.evaluate(run.policy.params, run.policy.normalizer, self.episodes, eval_key(seed), thresholds,
-                             entropy_guided=col.guided)
-        valid = np.asarray(result.valid)
-        evaluation = {"settings": json.loads(key), **eval_summary(result),
-                      "thresholds": None if thresholds is None else [float(t) for t in thresholds],
-                      "success": [bool(x) for x in np.asarray(result.success)],
-                      "steps": [int(x) for x in np.asarray(result.steps)],
-                      "decisions": [int(x) for x in valid.sum(axis=1)], "eval_s": time.perf_counter() - t0,
-                      "cpu_cores": cpu_cores()}
+        thresholds_json = None if thresholds is None else jsonio.loads(jsonio.dumps([float(t) for t in thresholds]))
+        same = _same_evaluation(record.get("evaluations", {}), json.loads(key), thresholds_json)
+        if same is not None:  # the same inputs were evaluated under another column's settings (percentiles)
+            evaluation = {**record["evaluations"][same], "settings": json.loads(key), "same_as": json.loads(same),
+                          "eval_s": 0.0}
+        else:
+            t0 = time.perf_counter()
+            result = ev.evaluate(run.policy.params, run.policy.normalizer, self.episodes, eval_key(seed), thresholds,
+                                 entropy_guided=col.guided)
+            valid = np.asarray(result.valid)
+            evaluation = {"settings": json.loads(key), **eval_summary(result), "thresholds": thresholds_json,
+                          "success": [bool(x) for x in np.asarray(result.success)],
+                          "steps": [int(x) for x in np.asarray(result.steps)],
+                          "decisions": [int(x) for x in valid.sum(axis=1)], "eval_s": time.perf_counter() - t0,
+                          "cpu_cores": cpu_cores()}
         evaluation = jsonio.loads(jsonio.dumps(evaluation))  # as records hold it (NaN: None), fresh or reread
         record = {"version": RECORD_VERSION, "budget": self.budget, "run_dir": os.path.relpath(run.run_dir),
                   **run_summary(run), "evaluations": {**record.get("evaluations", {}), key: evaluation}}
         write_json(path, record)
         return evaluation
+
+
+def _same_evaluation(evaluations: dict[str, dict], settings: dict, thresholds: list | None) -> str | None:
+    """The key of a recorded evaluation with the same inputs: settings equal but for the percentiles (which only
+    choose the thresholds) and the same thresholds; evaluations are deterministic, so its numbers are this one's."""
+    def rest(s: dict) -> dict:
+        return {k: v for k, v in s.items() if k != "percentiles"}
+
+    for key, ev in evaluations.items():
+        if "same_as" not in ev and rest(json.loads(key)) == rest(settings) and ev.get("thresholds") == thresholds:
+            return key
+    return None
 
 
 class Job(NamedTuple):
