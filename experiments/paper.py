@@ -551,8 +551,9 @@ def execution_table(args: ExecutionArgs) -> str:
             cells += [ci(records, "success_rate", table_seeds(args), tasks, 100.0, column=c),
                       ci(records, "mean_steps_success", table_seeds(args), tasks, column=c),
                       ci(records, "mean_decisions", table_seeds(args), tasks, column=c)]
+        every_task = all(any(r["task"] == t and r["column"] == "HiPolicy" for r in records) for t in tasks)
         cells.append(_stride_cell(records, table_seeds(args), column="HiPolicy",
-                                  **({"task": tasks[0]} if len(tasks) == 1 else {})))
+                                  **({"task": tasks[0]} if len(tasks) == 1 else {})) if every_task else "–")
         cells += [paired_cell(records, table_seeds(args), tasks, "HiPolicy", "DP+AAC"),
                   paired_cell(records, table_seeds(args), tasks, "HiPolicy", "DP")]
         rows.append(cells)
