@@ -802,9 +802,14 @@ def campaign_table(args: "CampaignArgs") -> str:
                bar_format="{l_bar}{bar}| {percentage:.0f}% of the estimated work [{elapsed}<{remaining}] {postfix}")
     for i, c in enumerate(costs):
         task, col, seed, changes = c["job"]
-        bar.set_postfix_str(f"{i + 1}/{len(costs)}: {task} seed {seed} {col.label} {_changes_text(dict(changes))}")
-        camp.evaluate(task, col, seed, dict(changes))
+        label = f"{i + 1}/{len(costs)}: {task} seed {seed} {col.label} {_changes_text(dict(changes))}"
+        bar.set_postfix_str(label)
+        t0 = time.perf_counter()
+        evaluation = camp.evaluate(task, col, seed, dict(changes))
         bar.update(round(guess if c["seconds"] is None else c["seconds"]))
+        if not args.progress and not c["done"] and evaluation is not None:  # a background run's log: a line a job
+            print(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: "
+                  f"{100 * evaluation['success_rate']:.0f} % in {time.perf_counter() - t0:.0f} s", flush=True)
     bar.close()
     if n > 1:  # the other shards may still run: what is left, not the tables
         return write_plan(args, CostModel(args.records, args.runs).estimate(camp, jobs))
