@@ -11,7 +11,9 @@ evaluation ``experiments.train`` reported (same settings, same initial states). 
 ``--out``):
 
 - ``eval.json``: success rate, mean execution steps (all / successful episodes), stride fractions, per episode
-  success and steps, for both evaluations, and the settings used;
+  success and steps, for both evaluations, and the settings used; on a task whose success needs a phase to last
+  (press_button's hold), ``timed_phase``: how many episodes hold it long enough, and its durations per executed
+  stride (``evaluation.phases``);
 - ``entropy_trace.png``: per-replan action entropy over control time for a few episodes, the executed stride as
   background bands and the thresholds as lines (the paper's entropy curve);
 - ``rollout.mp4`` (``rollout.gif`` without ffmpeg): the first successful episode (else the first), annotated with
@@ -54,6 +56,12 @@ def _line(name: str, s: dict) -> str:
             f"(successful: {s['mean_steps_success']:.1f}); stride fractions {{{strides}}}")
 
 
+def _timed_line(name: str, t: dict) -> str:
+    by = "; ".join(f"stride {s}: {v['runs']} runs, median {v['median_steps']:g} steps, {v['reached']:.0%} long enough"
+                   for s, v in t["by_stride"].items())
+    return (f"  timed phase, {name}: {t['reached']:.0%} of episodes hold it {t['required_steps']} steps; {by}")
+
+
 def main(args: EvaluateArgs) -> dict:
     run = with_compute_dtype(load_run(args.checkpoint, args.step), args.compute_dtype)
     seed = run.seed if args.seed is None else args.seed
@@ -65,6 +73,9 @@ def main(args: EvaluateArgs) -> dict:
           f"thresholds from {report['thresholds_source']}: {[round(t, 3) for t in report['thresholds']]}")
     print(_line("with entropy-guided execution", report["with_eg"]))
     print(_line("without (always stride 1)", report["without_eg"]))
+    for name, key in (("with entropy-guided execution", "with_eg"), ("without (always stride 1)", "without_eg")):
+        if "timed_phase" in report[key]:
+            print(_timed_line(name, report[key]["timed_phase"]))
     out = os.path.dirname(report["files"]["trace"])
     print(f"outputs in {out}: eval.json, " + ", ".join(os.path.basename(f) for f in report["files"].values()))
     return report

@@ -85,6 +85,11 @@ def test_evaluate_writes_json_trace_and_video(tiny):
     for key in ("with_eg", "without_eg"):
         _check_summary(saved[key], max_steps)
     assert saved["without_eg"]["stride1_frac"] == 1.0  # w/o entropy guidance: always the highest frequency
+    for key in ("with_eg", "without_eg"):  # press_button's hold: its durations per executed stride
+        timed = saved[key]["timed_phase"]
+        assert timed["required_steps"] == 10 and len(timed["longest"]) == 3
+        assert 0.0 <= timed["reached"] <= 1.0 and set(timed["by_stride"]) <= {"1", "2", "3"}
+    assert set(saved["without_eg"]["timed_phase"]["by_stride"]) <= {"1"}
     assert report["steps_ratio"] > 0 and 0 <= saved["video_episode"] < 3
     # the video is the recorded episode of the batched rollout: the reset frame plus one frame per step
     frames = iio.imread(video, plugin="pyav")  # in-process decoding (no ffmpeg subprocess fork)

@@ -313,6 +313,12 @@ class MjxEnv:
         """Map a plan-space point (4,) to an action (4,); identity for cartesian plans."""
         return point
 
+    def timed_phase(self, qpos: np.ndarray) -> tuple[np.ndarray, int] | None:
+        """The control steps of a phase whose duration the success condition checks, for recorded joint positions
+        ``qpos`` (..., T, nq) → (in_phase (..., T) bool, the steps it must last); None for tasks without one.
+        ``evaluation.phases`` measures how long rollouts hold such a phase and at which stride."""
+        return None
+
     # ------------------------------------------------------------------ task hooks
     def _sample_init(self, key: jax.Array) -> tuple[jax.Array, jax.Array, dict]:
         """Randomised initial (qpos (nq,), body_pos (len(randomised_bodies), 3), task info dict).

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from hipolicy_jax.envs import base
 
@@ -50,6 +51,10 @@ class PressButton(base.MjxEnv):
     def depth(self, data) -> jax.Array:
         """Cap depth below its rest position (m), ()."""
         return -data.qpos[self._button_qadr]
+
+    def timed_phase(self, qpos):
+        """The cap held pressed (depth > ``PRESS_DEPTH``), which must last ``hold_steps`` control steps."""
+        return -np.asarray(qpos)[..., self._button_qadr] > PRESS_DEPTH, self.hold_steps
 
     def _task_update(self, data, info):
         depth = self.depth(data)

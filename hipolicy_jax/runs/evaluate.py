@@ -13,7 +13,7 @@ import dataclasses
 import os
 
 from hipolicy_jax.config import InferenceConfig
-from hipolicy_jax.evaluation import calibration, plots, video
+from hipolicy_jax.evaluation import calibration, phases, plots, video
 from hipolicy_jax.evaluation.evaluator import Evaluator, result_record
 from hipolicy_jax.runs.store import Run, eval_key, make_evaluator, write_json
 
@@ -34,7 +34,7 @@ def evaluate_run(run: Run, inference: InferenceConfig, *, episodes: int = 20, se
     ev = evaluator or make_evaluator(run, inference)
     p, key = run.policy, eval_key(seed)
     eg, rec = ev.rollout(p.params, p.normalizer, episodes, key, thresholds, entropy_guided=True)
-    plain, _ = ev.rollout(p.params, p.normalizer, episodes, key, thresholds, entropy_guided=False)
+    plain, plain_rec = ev.rollout(p.params, p.normalizer, episodes, key, thresholds, entropy_guided=False)
     percentiles = calib.get("percentiles") if (calib and source == calibration.CALIBRATION_FILE) else None
     files = {"trace": plots.plot_entropy_traces(
         eg, thresholds, cfg.chunk.strides, os.path.join(out, "entropy_trace.png"),
@@ -47,6 +47,10 @@ def evaluate_run(run: Run, inference: InferenceConfig, *, episodes: int = 20, se
             ev.env, eg, rec, os.path.join(out, f"rollout.{fmt}"), backend=video_backend, height=video_height,
             width=video_width)
     with_eg, without_eg = result_record(eg), result_record(plain)
+    for record, result, recording in ((with_eg, eg, rec), (without_eg, plain, plain_rec)):
+        timed = phases.timed_phase_report(ev.env, result, recording)
+        if timed is not None:
+            record["timed_phase"] = timed
     report = {"task": run.task, "run_dir": run.run_dir, "checkpoint_step": p.step, "strides": list(cfg.chunk.strides),
               "objective": cfg.objective, "episodes": episodes, "seed": seed,
               "inference": dataclasses.asdict(inference), "thresholds": list(thresholds), "thresholds_source": source,
