@@ -49,11 +49,12 @@ from hipolicy_jax.config import PolicyConfig
 from hipolicy_jax.envs import TASK_PRECISE
 from hipolicy_jax.evaluation import stats
 from hipolicy_jax.runs.budgets import BUDGETS, DP, REGIMES, regime_changes, run_config
-from hipolicy_jax.runs.campaign import (README_BEGIN, README_END, Campaign, Column, CostModel, Job, choose_low_regime,
-                                        pilot_candidates, readme_section, schedule, shard, update_readme)
+from hipolicy_jax.runs.campaign import (README_BEGIN, README_END, Campaign, Column, CostModel, Deadline, Job,
+                                        choose_low_regime, parse_until, pilot_candidates, readme_section, schedule,
+                                        shard, update_readme)
 from hipolicy_jax.runs.cli import enable_compilation_cache
 from hipolicy_jax.runs.store import write_json
-from hipolicy_jax.runs.train import RunConfig
+from hipolicy_jax.runs.train import RunConfig, cpu_cores
 
 TaskName = Literal["press_button", "latch_door", "stack_cubes", "pick_place"]
 ObsName = Literal["state", "image", "pointcloud"]
@@ -115,6 +116,9 @@ class CampaignArgs(PaperArgs):
     # (`taskset -c K`) or per machine sharing the records; every evaluation of a run is in its run's shard. A shard
     # ends by writing the plan of what is left; build the tables with --from-records once every shard has finished
     shard: tuple[int, int] = (0, 1)
+    # HH:MM or YYYY-MM-DD HH:MM (local time): start only the jobs whose estimated time ends before it, skip the rest
+    # (a scheduler's time limit, a session's end); '' = no limit
+    until: str = ""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -789,12 +793,17 @@ def campaign_table(args: "CampaignArgs") -> str:
     k, n = args.shard
     if not 0 <= k < n:
         raise ValueError(f"shard: expected K N with 0 <= K < N, got {k} {n}")
-    jobs = shard(jobs, k, n, lambda job: camp.run_config(job.task, job.col, job.seed, dict(job.changes)).out_dir())
+    until = parse_until(args.until)
+    def run_of(job: Job) -> str:
+        return camp.run_config(job.task, job.col, job.seed, dict(job.changes)).out_dir()
+
+    jobs = shard(jobs, k, n, run_of)
     costs = CostModel(args.records, args.runs).estimate(camp, jobs)
     if args.plan:
         return write_plan(args, costs)
     known = [c["seconds"] for c in costs if c["seconds"]]
     guess = float(np.median(known)) if known else 1.0  # a job nothing measured yet
+    deadline = Deadline(until, cpu_cores(), guess)
     # the bar counts estimated seconds of work (recorded jobs cost 0), so its ETA is the measured rate at which
     # the estimate is worked off: it corrects itself as runs finish faster or slower than their records said
     bar = tqdm(total=round(sum(guess if c["seconds"] is None else c["seconds"] for c in costs)), desc="campaign",
@@ -804,6 +813,12 @@ def campaign_table(args: "CampaignArgs") -> str:
         task, col, seed, changes = c["job"]
         label = f"{i + 1}/{len(costs)}: {task} seed {seed} {col.label} {_changes_text(dict(changes))}"
         bar.set_postfix_str(label)
+        if not deadline.admits(c, run_of(c["job"])):
+            bar.update(round(guess if c["seconds"] is None else c["seconds"]))
+            estimate = "unmeasured" if c["seconds"] is None else f"{c['seconds'] / deadline.cores:.0f} s"
+            tqdm.write(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: skipped, estimated {estimate}, "
+                       f"{max(deadline.seconds_left(), 0):.0f} s left before --until {args.until}")
+            continue
         t0 = time.perf_counter()
         evaluation = camp.evaluate(task, col, seed, dict(changes))
         bar.update(round(guess if c["seconds"] is None else c["seconds"]))

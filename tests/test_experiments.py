@@ -23,8 +23,9 @@ from hipolicy_jax.config import InferenceConfig
 from experiments import calibrate, evaluate, paper
 from hipolicy_jax import envs, jsonio
 from hipolicy_jax.runs.budgets import BUDGETS, DP, variant_name
-from hipolicy_jax.runs.campaign import (Campaign, Column, CostModel, Job, choose_low_regime, pilot_candidates,
-                                        schedule, shard)
+from hipolicy_jax.checkpoint import config_to_dict
+from hipolicy_jax.runs.campaign import (Campaign, Column, CostModel, Deadline, Job, choose_low_regime, parse_until,
+                                        pilot_candidates, schedule, shard)
 from hipolicy_jax.runs.cli import parse_with_run_inference
 from hipolicy_jax.runs.store import load_run, make_evaluator
 from hipolicy_jax.runs.train import train
@@ -472,15 +473,23 @@ def test_campaign_shards_split_runs_and_the_plan_estimates_from_records(tmp_path
     dp, te = Column("DP", changes=DP), Column("DP+TE", changes=DP, execution="te")
     hip, dp3 = Column("DP+HiPolicy"), Column("DP3", "pointcloud", DP)
     key0 = camp._key(dp, 0)[1]
-    record = {"training": {"steps": 10, "wall_time_s": 100.0, "cpu_cores": 1},
-              "evaluations": {key0: {"settings": json.loads(key0), "eval_s": 5.0, "cpu_cores": 2}}}
-    path = tmp_path / "records" / "smoke" / "press_button" / "state" / "dp" / "seed0.json"
-    path.parent.mkdir(parents=True)
-    path.write_text(json.dumps(record))
+    dp_cfg = camp.run_config("press_button", dp, 0)
+
+    def write_record(variant, training):
+        record = {"policy": config_to_dict(dp_cfg.policy), "train": config_to_dict(dp_cfg.train), "training": training,
+                  "evaluations": {key0: {"settings": json.loads(key0), "eval_s": 5.0, "cpu_cores": 2}}}
+        path = tmp_path / "records" / "smoke" / "press_button" / "state" / variant / "seed0.json"
+        path.parent.mkdir(parents=True)
+        path.write_text(json.dumps(record))
+
+    write_record("dp", {"steps": 10, "wall_time_s": 100.0, "cpu_cores": 1})
+    # a run of the same network (another regime) from a process that did not say its cores: it shared them with
+    # other jobs (1000 CPU-s a step), and the record that says its cores wins
+    write_record("dp_t20", {"steps": 10, "wall_time_s": 5000.0})
     model = CostModel(str(tmp_path / "records"), str(tmp_path / "runs"))
     todo = [Job("press_button", dp, 0), Job("press_button", dp, 1), Job("press_button", te, 1),
             Job("press_button", Column("w/o Hier.", changes=DP), 1), Job("stack_cubes", hip, 0),
-            Job("stack_cubes", dp3, 0)]
+            Job("stack_cubes", dp3, 0), Job("stack_cubes", dp, 0, (("train.num_steps", 40),))]
     rows = model.estimate(camp, todo)
     steps = BUDGETS["smoke"].train.num_steps
     assert [(r["done"], r["trains"], r["seconds"]) for r in rows] == [
@@ -488,13 +497,63 @@ def test_campaign_shards_split_runs_and_the_plan_estimates_from_records(tmp_path
         (False, True, 10.0 * steps + 10.0),  # trains (10 CPU-s per step) and evaluates (5 s on 2 cores)
         (False, False, 10.0),  # the same run, another strategy: the task's evaluations
         (False, False, 0.0),  # the same evaluation as DP's seed 1 under another table's label
-        (False, True, 10.0 * steps + 10.0),  # no hipolicy record: the state runs' per-step time
-        (False, True, None)]  # no point-cloud record at all: unmeasured
+        (False, True, 10.0 * steps + 10.0),  # no record of its network: the state runs' per-step time
+        (False, True, None),  # no point-cloud record at all: unmeasured
+        (False, True, 10.0 * 40 + 10.0)]  # the DP network on another task and regime: its per-step time × 40 steps
+    rows = rows[:-1]
     text = Path(paper.write_plan(args, rows)).read_text()
     assert "1 of 6 evaluations recorded" in text and "1 unmeasured" in text
     assert f"{(2 * (10.0 * steps + 10.0) + 10.0) / 3600:.1f} CPU-hours" in text
     with pytest.raises(ValueError, match="shard: expected K N with 0 <= K < N, got 2 2"):
         paper.campaign_table(dataclasses.replace(args, shard=(2, 2)))
+
+
+def test_deadline_starts_only_the_jobs_that_end_before_until():
+    """--until: a job starts when its estimated CPU-seconds over the process's cores end before the limit, else the
+    next one that fits runs; a run whose training was skipped keeps its later evaluations skipped; recorded jobs
+    always pass; unmeasured jobs count at the guess; no limit admits everything. HH:MM is its next occurrence."""
+    now = [1000.0]
+    deadline = Deadline(until=1000.0 + 100.0, cores=2, guess=50.0, clock=lambda: now[0])
+    train_a = {"done": False, "trains": True, "seconds": 300.0}  # 150 s on 2 cores > 100 s left
+    eval_a = {"done": False, "trains": False, "seconds": 20.0}  # cheap, but run a was never trained
+    assert not deadline.admits(train_a, "runs/a") and not deadline.admits(eval_a, "runs/a")
+    assert deadline.admits({"done": False, "trains": True, "seconds": 200.0}, "runs/b")  # 100 s: ends in time
+    assert deadline.admits({"done": True, "trains": False, "seconds": 0.0}, "runs/a")  # a record costs nothing
+    assert deadline.admits({"done": False, "trains": False, "seconds": None}, "runs/c")  # guess: 25 s
+    now[0] = 1090.0  # 10 s left
+    assert not deadline.admits({"done": False, "trains": False, "seconds": 40.0}, "runs/c")  # an evaluation: ...
+    assert deadline.admits({"done": False, "trains": False, "seconds": 20.0}, "runs/c")  # ... its run not skipped
+    assert deadline.skipped == {"runs/a"} and deadline.seconds_left() == 10.0
+    assert Deadline(None, 1, 1.0).admits(train_a, "runs/a") and Deadline(None, 1, 1.0).seconds_left() == math.inf
+
+    import datetime
+    noon = datetime.datetime(2026, 12, 2, 12, 0).timestamp()
+    assert parse_until("", noon) is None
+    assert parse_until("14:15", noon) == datetime.datetime(2026, 12, 2, 14, 15).timestamp()
+    assert parse_until("9:30", noon) == datetime.datetime(2026, 12, 3, 9, 30).timestamp()  # already past: tomorrow
+    assert parse_until("2026-12-05 08:00", noon) == datetime.datetime(2026, 12, 5, 8, 0).timestamp()
+    for bad in ("25:00", "soon", "2026-13-01 10:00"):
+        with pytest.raises(ValueError, match=r"until: expected HH:MM or YYYY-MM-DD HH:MM \(local time\), got"):
+            parse_until(bad, noon)
+
+
+def test_campaign_until_skips_what_does_not_fit(tmp_path, capsys):
+    """A campaign whose --until has passed starts nothing: every pending job is skipped with a line saying its
+    estimate and the time left, and the shard still writes its plan of what is left."""
+    args = paper.parse_args(["campaign", "--budget", "smoke", "--tasks", "press_button", "--regimes", "r100",
+                             "--obs-types", "state", "--runs", str(tmp_path / "runs"), "--records",
+                             str(tmp_path / "records"), "--results", str(tmp_path / "results"), "--data",
+                             str(tmp_path / "data"), "--no-progress", "--shard", "0", "2", "--until", "2000-01-01 00:00"])
+    plan = paper.campaign_table(args)
+    out = capsys.readouterr().out
+    jobs, _ = paper.campaign_jobs(args, paper.protocol_tables(args))
+    lines = [line for line in out.splitlines() if ": skipped, estimated " in line]
+    assert lines and all("s left before --until 2000-01-01 00:00" in line for line in lines)
+    assert len(lines) == len(shard(jobs, 0, 2, lambda j: paper.campaign(args).run_config(
+        j.task, j.col, j.seed, dict(j.changes)).out_dir()))
+    assert not (tmp_path / "runs").exists() and "0 of" in Path(plan).read_text()
+    with pytest.raises(ValueError, match="until: expected HH:MM"):
+        paper.campaign_table(dataclasses.replace(args, until="later"))
 
 
 def test_readme_section_from_table_files(tmp_path):

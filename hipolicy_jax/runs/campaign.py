@@ -25,6 +25,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from hipolicy_jax import envs, jsonio
+from hipolicy_jax.checkpoint import config_to_dict
 from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.evaluation import calibration
 from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
@@ -208,44 +209,59 @@ def shard(jobs: list[Job], k: int, n: int, run_of: Callable[[Job], str]) -> list
     return [job for job in jobs if runs[run_of(job)] == k]
 
 
+def training_key(policy: dict, batch_size: int) -> str:
+    """What a training step's cost depends on: the policy config (network, encoder, objective) and the batch size;
+    not the task, the number of demos nor the number of steps (a regime's ``_d25`` / ``_t8000`` runs share it)."""
+    return json.dumps({"policy": policy, "batch_size": batch_size}, sort_keys=True)
+
+
 class CostModel:
     """CPU-seconds a campaign's pending evaluation will take (wall time × the cores its process ran on, 2 where a
-    record does not say), from the measured times the records hold: the run's
-    training when it has none yet (seconds per step of the same variant on the same task, else of the variant on
-    any task, else of any run of the observation type, × the run's steps), plus the evaluation (the same task and
-    execution strategy, else the task, else any); 0 for an evaluation another table's column already makes. Medians,
-    so a run slowed by other jobs does not skew them; None when no record of the observation type exists yet."""
+    record does not say), from the measured times the records hold: the run's training when it has none yet
+    (seconds per step of the same network and batch on the same task, else on any task, else of any run of the
+    observation type, × the run's steps), plus the evaluation (the same task and execution strategy, else the task,
+    else any); 0 for an evaluation another table's column already makes. Medians, and within each selection only the
+    records that say their cores when any do (a record without them comes from a process that shared its cores
+    with others), so a run slowed by other jobs does not skew them; None when no record of the observation type
+    exists yet."""
 
     def __init__(self, records: str, runs: str):
         self.records, self.runs = records, runs
-        self._train: list[tuple[tuple[str, str, str], float]] = []  # ((task, obs, variant), seconds per step)
-        self._eval: list[tuple[tuple[str, str], float]] = []  # ((task, execution), seconds)
+        # ((task, obs, training key), seconds per step, cores stated)
+        self._train: list[tuple[tuple[str, str, str], float, bool]] = []
+        self._eval: list[tuple[tuple[str, str], float, bool]] = []  # ((task, execution), seconds, cores stated)
         for path in glob.glob(os.path.join(records, "**", "*.json"), recursive=True):
             rec = read_json(path)
             parts = os.path.relpath(path, records).split(os.sep)
             if len(parts) < 5 or "training" not in rec:
                 continue
-            task, obs, variant = parts[-4], parts[-3], parts[-2]
+            task, obs = parts[-4], parts[-3]
+            key = training_key(rec.get("policy"), (rec.get("train") or {}).get("batch_size"))
             steps, wall = rec["training"].get("steps"), rec["training"].get("wall_time_s")
+            cores = rec["training"].get("cpu_cores")
             if steps and wall:
-                self._train.append(((task, obs, variant), wall * (rec["training"].get("cpu_cores") or 2) / steps))
+                self._train.append(((task, obs, key), wall * (cores or 2) / steps, cores is not None))
             for ev in rec.get("evaluations", {}).values():
                 if ev.get("eval_s"):
-                    self._eval.append(((task, ev["settings"]["execution"]), ev["eval_s"] * (ev.get("cpu_cores") or 2)))
+                    self._eval.append(((task, ev["settings"]["execution"]), ev["eval_s"] * (ev.get("cpu_cores") or 2),
+                                       ev.get("cpu_cores") is not None))
 
     @staticmethod
     def _median(rows, *matches) -> float | None:
-        """The median of the first non-empty selection: rows whose key matches ``m`` where ``m`` is not None."""
+        """The median of the first non-empty selection: rows whose key matches ``m`` where ``m`` is not None; of
+        its rows that state their cores when there are any."""
         for match in matches:
-            vals = [v for key, v in rows if all(m is None or k == m for k, m in zip(key, match))]
-            if vals:
-                return float(np.median(vals))
+            chosen = [(v, known) for key, v, known in rows if all(m is None or k == m for k, m in zip(key, match))]
+            if chosen:
+                known = [v for v, k in chosen if k]
+                return float(np.median(known or [v for v, _ in chosen]))
         return None
 
     def train_seconds(self, cfg: RunConfig) -> float | None:
         parts = os.path.relpath(cfg.out_dir(), self.runs).split(os.sep)
-        task, obs, variant = parts[-4], parts[-3], parts[-2]
-        per_step = self._median(self._train, (task, obs, variant), (None, obs, variant), (None, obs, None))
+        task, obs = parts[-4], parts[-3]
+        key = training_key(config_to_dict(cfg.policy), cfg.train.batch_size)
+        per_step = self._median(self._train, (task, obs, key), (None, obs, key), (None, obs, None))
         return None if per_step is None else per_step * cfg.train.num_steps
 
     def eval_seconds(self, task: str, execution: str) -> float | None:
@@ -269,6 +285,52 @@ class CostModel:
             evaluated.add(evaluation)
             rows.append({"job": job, "done": done, "trains": needs_train, "seconds": seconds})
         return rows
+
+
+def parse_until(text: str, now: float | None = None) -> float | None:
+    """``--until`` as a Unix time: '' → None (no limit); 'HH:MM' → its next occurrence (local time) after ``now``;
+    'YYYY-MM-DD HH:MM' (or any ISO date and time) → that time; else a one-line ``ValueError``."""
+    import datetime
+
+    if not text:
+        return None
+    now = time.time() if now is None else now
+    start = datetime.datetime.fromtimestamp(now)
+    try:
+        if len(text) <= 5 and ":" in text:
+            hour, minute = (int(v) for v in text.split(":"))
+            at = start.replace(hour=hour, minute=minute, second=0, microsecond=0)
+            return (at + datetime.timedelta(days=1) if at.timestamp() <= now else at).timestamp()
+        return datetime.datetime.fromisoformat(text).timestamp()
+    except ValueError:
+        raise ValueError(f"until: expected HH:MM or YYYY-MM-DD HH:MM (local time), got {text!r}") from None
+
+
+class Deadline:
+    """A wall-clock limit on a campaign process (a scheduler's time limit, a session's end): a pending job starts
+    only when its estimated CPU-seconds (``CostModel``; ``guess`` when unmeasured), spread over the process's
+    ``cores``, end before ``until``; otherwise it is skipped and the next one that fits runs. A run whose training
+    was skipped stays skipped (its later evaluations would need that training too). ``until=None``: no limit."""
+
+    def __init__(self, until: float | None, cores: int, guess: float, clock: Callable[[], float] = time.time):
+        self.until, self.cores, self.guess, self.clock = until, max(int(cores), 1), guess, clock
+        self.skipped: set[str] = set()  # run dirs whose training was skipped
+
+    def seconds_left(self) -> float:
+        return float("inf") if self.until is None else self.until - self.clock()
+
+    def admits(self, cost: dict, run_dir: str) -> bool:
+        """Whether the job of ``cost`` (a ``CostModel.estimate`` row) on the run at ``run_dir`` may start now."""
+        if self.until is None or cost["done"]:
+            return True
+        if run_dir in self.skipped:
+            return False
+        seconds = self.guess if cost["seconds"] is None else cost["seconds"]
+        if seconds / self.cores <= self.seconds_left():
+            return True
+        if cost["trains"]:
+            self.skipped.add(run_dir)
+        return False
 
 
 README_BEGIN = "<!-- campaign tables: written by `python -m experiments.paper campaign` from results/*.md -->"
