@@ -149,6 +149,48 @@ def test_checkpoint_write_failure_is_one_line_and_keeps_the_last_checkpoint(data
     np.testing.assert_allclose(res.losses, full.losses[4:], rtol=1e-6)
 
 
+def test_concurrent_demo_collection_happens_once_and_is_never_read_half_written(tmp_path, monkeypatch):
+    """Two processes (here threads) asking for one missing demo buffer: one collects, the other waits and loads it;
+    a collection cut off leaves only its temporary (removed by the next), never a dataset at the path."""
+    import threading
+
+    from hipolicy_jax.config import EncoderConfig
+    from hipolicy_jax.envs import demos
+
+    calls = []
+
+    def slow_collect(task, num_episodes, key, obs_keys, **kwargs):
+        calls.append(task)
+        time.sleep(0.5)
+        if task == "fails":
+            raise KeyboardInterrupt  # cut off mid-collection
+        return [{"state": np.full((5, 3), i, np.float32), "action": np.full((5, 2), i, np.float32)}
+                for i in range(num_episodes)]
+
+    monkeypatch.setattr(demos, "collect_demos", slow_collect)
+    path = str(tmp_path / "data" / "demo.zarr")
+    os.makedirs(path + ".partial-999")  # a collection killed earlier
+    got = [None, None]
+
+    def worker(i):
+        got[i] = demos.load_or_collect("press_button", EncoderConfig(), 3, path, progress=False)
+
+    threads = [threading.Thread(target=worker, args=(i,)) for i in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert calls == ["press_button"]  # collected once
+    for buffer in got:
+        assert buffer.num_episodes == 3 and np.array_equal(buffer.data["state"], got[0].data["state"])
+    assert sorted(os.listdir(tmp_path / "data")) == [".demo.zarr.lock", "demo.zarr"]  # the stale temporary is gone
+
+    broken = str(tmp_path / "data" / "broken.zarr")
+    with pytest.raises(KeyboardInterrupt):
+        demos.load_or_collect("fails", EncoderConfig(), 3, broken, progress=False)
+    assert not os.path.exists(broken)
+
+
 def test_no_startup_noise():
     """Importing the package (MuJoCo MJX included) prints nothing: no 'Failed to import warp' lines."""
     proc = subprocess.run([sys.executable, "-c", "import hipolicy_jax.envs, hipolicy_jax.evaluation"],

@@ -142,11 +142,43 @@ def check_buffer_fits_env(buffer: ReplayBuffer, env, path: str) -> None:
 def load_or_collect(task: str, encoder: EncoderConfig, episodes: int, path: str, seed: int = 0,
                     progress: bool = True) -> ReplayBuffer:
     """Reuse the dataset at ``path`` (checked against ``encoder``: keys and frame shapes) or collect ``episodes``
-    expert demos of ``task`` with the encoder's observations and camera and save them there."""
-    if os.path.exists(path):
-        buffer = ReplayBuffer.load(path)
-        check_buffer(buffer, encoder, path)
+    expert demos of ``task`` with the encoder's observations and camera and save them there.
+
+    Safe under concurrency and interruption: processes asking for the same dataset (a campaign's shards) collect it
+    once — the first holds ``<dir>/.<name>.lock`` and the others wait for it — and it is written to a temporary
+    sibling that is renamed into place, so no one ever reads a half-written dataset (a collection cut off leaves
+    only its temporary, removed by the next one)."""
+    import glob
+    import shutil
+
+    from filelock import FileLock, Timeout
+
+    parent = os.path.dirname(os.path.abspath(path))
+    os.makedirs(parent, exist_ok=True)
+    lock = FileLock(os.path.join(parent, f".{os.path.basename(path)}.lock"))
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
+        print(f"waiting for another process collecting {path} (lock {lock.lock_file})", flush=True)
+        lock.acquire()
+    try:
+        if os.path.exists(path):
+            buffer = ReplayBuffer.load(path)
+            check_buffer(buffer, encoder, path)
+            return buffer
+        for partial in glob.glob(glob.escape(path) + ".partial-*"):  # left by a collection that was cut off
+            shutil.rmtree(partial, ignore_errors=True)
+        if progress:
+            print(f"collecting {episodes} expert demos of {task} → {path}")
+        kwargs = envs_lib.encoder_env_kwargs(encoder)
+        episodes_data = collect_demos(task, episodes, jax.random.key(seed), kwargs.pop("obs_keys"), **kwargs)
+        buffer = ReplayBuffer.from_episodes(episodes_data)
+        partial = f"{path}.partial-{os.getpid()}"
+        buffer.save(partial)
+        os.replace(partial, path)
         return buffer
+    finally:
+        lock.release()
     if progress:
         print(f"collecting {episodes} expert demos of {task} → {path}")
     kwargs = envs_lib.encoder_env_kwargs(encoder)
