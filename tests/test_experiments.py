@@ -438,17 +438,20 @@ def test_campaign_follows_the_protocol():
 
 
 def test_campaign_schedule_completes_paired_comparisons_first():
-    """The campaign runs each job once: state before point clouds, the protocol's seeds before the baselines'
-    extra seeds, the task with the longest episodes (pick_place) last, else in table order."""
+    """The campaign runs each job once: the protocol's seeds before the baselines' extra seeds, state before point
+    clouds, the task with the longest episodes (pick_place) last, else in table order."""
     args = paper.parse_args(["campaign", "--budget", "smoke"])
     jobs, skipped = paper.campaign_jobs(args, paper.protocol_tables(args))
     assert not skipped and len(jobs) == len(set(jobs))
-    stage = [(j.col.obs_type != "state", j.seed not in args.seeds, j.task == "pick_place") for j in jobs]
+    stage = [(j.seed not in args.seeds, j.col.obs_type != "state", j.task == "pick_place") for j in jobs]
     assert stage == sorted(stage) and len(set(stage)) == 6  # point clouds have no extra seeds
     first = [(j.task, j.col.label, j.seed) for j in jobs[:4]]
     assert first == [("press_button", "DP", 0), ("press_button", "DP", 1), ("press_button", "DP", 2),
                      ("stack_cubes", "DP", 0)]
-    assert {j.col.obs_type for j in jobs[-6:]} == {"pointcloud"} and jobs[-1].task == "pick_place"
+    extra = [i for i, j in enumerate(jobs) if j.seed not in args.seeds]
+    cloud = [i for i, j in enumerate(jobs) if j.col.obs_type == "pointcloud"]
+    assert extra and cloud and max(cloud) < min(extra) and jobs[-1].task == "pick_place"
+    assert {jobs[i].col.obs_type for i in extra} == {"state"}
     assert schedule([jobs[0], jobs[0]], (0,)) == [jobs[0]]
 
 

@@ -189,14 +189,14 @@ class Job(NamedTuple):
 
 def schedule(jobs: list[Job], main_seeds: tuple[int, ...]) -> list[Job]:
     """The campaign's order, so that every session's work completes paired comparisons soonest: the jobs without
-    duplicates, then (stable, else in table order) state before point clouds (DP3 runs cost 5-10x more), the
-    protocol's seeds before the baselines' extra seeds, and the task with the longest episodes (the costliest
-    evaluations and training) last."""
+    duplicates, then (stable, else in table order) the protocol's seeds before the baselines' extra seeds (every
+    cell reaches the protocol's seed count before any cell goes beyond it), state before point clouds (DP3 runs
+    cost 5-10x more), and the task with the longest episodes (the costliest evaluations and training) last."""
     jobs = list(dict.fromkeys(jobs))
     limits = {task: envs.episode_limit(task) for task in {j.task for j in jobs}}
     longest = max(limits.values(), default=0)
     costly = {task for task, n in limits.items() if n == longest and len(set(limits.values())) > 1}
-    return sorted(jobs, key=lambda j: (j.col.obs_type != "state", j.seed not in main_seeds, j.task in costly))
+    return sorted(jobs, key=lambda j: (j.seed not in main_seeds, j.col.obs_type != "state", j.task in costly))
 
 
 def shard(jobs: list[Job], k: int, n: int, run_of: Callable[[Job], str]) -> list[Job]:
