@@ -351,10 +351,24 @@ def cost_note(records: list[dict]) -> str:
             f"{train_s / 3600:.1f} h training {len(train)} runs, {eval_s / 3600:.1f} h evaluating), from the records.")
 
 
+def regime_text(args: PaperArgs) -> str:
+    """What the regime changes per task, e.g. ' (press_button: 25 demos; pick_place: num steps 8000; these replace
+    the budget's demos or steps)'; '' for R100, which changes nothing."""
+    parts = []
+    for task in args.tasks:
+        try:
+            changes = regime_changes(args.regime, task)
+        except ValueError:
+            continue
+        if changes:
+            parts.append(f"{task}: {_changes_text(changes)}")
+    return f" ({'; '.join(parts)}; these replace the budget's demos or steps)" if parts else ""
+
+
 def results_header(title: str, args: PaperArgs, notes: list[str]) -> str:
     b = BUDGETS[args.budget]
     lines = [f"# {title}", "", f"Command: `{command_line(args)}`", "",
-             f"Protocol: `results/PROTOCOL.md`. Regime `{args.regime}`; seeds {', '.join(str(s) for s in args.seeds)}"
+             f"Protocol: `results/PROTOCOL.md`. Regime `{args.regime}`{regime_text(args)}; seeds {', '.join(str(s) for s in args.seeds)}"
              + (f" (single-frequency baselines also {', '.join(map(str, args.baseline_seeds))})"
                 if args.baseline_seeds else "") + ". "
              f"Cells: mean over seeds with its 95 % bootstrap interval over seeds × episodes. Budget "

@@ -635,3 +635,16 @@ def test_compilation_cache_is_shared_across_processes(tmp_path):
     assert probe(JAX_COMPILATION_CACHE_DIR=str(named)) == (str(named), 0) and os.listdir(named)
     assert probe(JAX_COMPILATION_CACHE_DIR="", XDG_CACHE_HOME=str(tmp_path / "off")) == ("None", 0)
     assert not (tmp_path / "off").exists()
+
+
+def test_results_header_names_each_tasks_regime():
+    """A low-data table's header says what the regime changed per task (demos or steps), since the budget's note
+    describes R100; R100's header adds nothing."""
+    from hipolicy_jax.runs.budgets import REGIMES
+    rlow = paper.AblationArgs(regime="rlow", tasks=tuple(REGIMES["rlow"]))
+    header = paper.results_header("T", rlow, [])
+    for task, changes in REGIMES["rlow"].items():
+        assert f"{task}: {paper._changes_text(changes)}" in header
+    assert "Regime `rlow` (" in header
+    r100 = paper.results_header("T", paper.AblationArgs(regime="r100"), [])
+    assert "Regime `r100`;" in r100
