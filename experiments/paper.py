@@ -559,7 +559,7 @@ def execution_table(args: ExecutionArgs) -> str:
     records = collect(args, EXECUTION)
     labels = [c.label for c in EXECUTION]
     header = ["Task", *(f"{c} {m}" for c in labels for m in ("SR", "Steps", "Decisions")), "HiPolicy strides (%)",
-              "HiPolicy − DP+AAC (points)", "HiPolicy − DP (points)"]
+              "HiPolicy − DP+TE (points)", "HiPolicy − DP+AAC (points)", "HiPolicy − DP (points)"]
     rows = []
     groups = [[t] for t in args.tasks] + ([list(args.tasks)] if len(args.tasks) > 1 else [])
     for tasks in groups:
@@ -572,7 +572,8 @@ def execution_table(args: ExecutionArgs) -> str:
         every_task = all(any(r["task"] == t and r["column"] == "HiPolicy" for r in records) for t in tasks)
         cells.append(_stride_cell(records, table_seeds(args), column="HiPolicy",
                                   **({"task": tasks[0]} if len(tasks) == 1 else {})) if every_task else "–")
-        cells += [paired_cell(records, table_seeds(args), tasks, "HiPolicy", "DP+AAC"),
+        cells += [paired_cell(records, table_seeds(args), tasks, "HiPolicy", "DP+TE"),
+                  paired_cell(records, table_seeds(args), tasks, "HiPolicy", "DP+AAC"),
                   paired_cell(records, table_seeds(args), tasks, "HiPolicy", "DP")]
         rows.append(cells)
     table = markdown_table(header, rows)

@@ -272,7 +272,8 @@ def test_paper_tables_on_fake_numbers(tmp_path, monkeypatch):
     main_md = open(tmp_path / "res" / "main.md").read()
     assert "DP+HiPolicy − DP (points)" in main_md and re.search(r"p=[\d.e-]+ \((wins|ties|loses)\)", main_md)
     execution_md = open(tmp_path / "res" / "execution.md").read()
-    for label in ("DP SR", "DP+TE SR", "DP+AAC SR", "w/o EG SR", "HiPolicy SR", "HiPolicy Decisions"):
+    for label in ("DP SR", "DP+TE SR", "DP+AAC SR", "w/o EG SR", "HiPolicy SR", "HiPolicy Decisions",
+                  "HiPolicy − DP+TE (points)", "HiPolicy − DP+AAC (points)"):
         assert label in execution_md
     # precise tasks (press_button, stack_cubes) come first, each group is followed by its average
     order = [main_md.index(k) for k in ("| press_button", "| stack_cubes", "Average (precise)", "| latch_door",
