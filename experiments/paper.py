@@ -829,7 +829,7 @@ def campaign_table(args: "CampaignArgs") -> str:
         task, col, seed, changes = c["job"]
         label = f"{i + 1}/{len(costs)}: {task} seed {seed} {col.label} {_changes_text(dict(changes))}"
         bar.set_postfix_str(label)
-        if not deadline.admits(c, run_of(c["job"])):
+        if not deadline.admits(CostModel.refresh(args.records, args.runs, camp, c), run_of(c["job"])):
             bar.update(round(guess if c["seconds"] is None else c["seconds"]))
             estimate = "unmeasured" if c["seconds"] is None else f"{c['seconds'] / deadline.cores:.0f} s"
             tqdm.write(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: skipped, estimated {estimate}, "

@@ -504,6 +504,16 @@ def test_campaign_shards_split_runs_and_the_plan_estimates_from_records(tmp_path
         (False, True, 10.0 * steps + 10.0),  # no record of its network: the state runs' per-step time
         (False, True, None),  # no point-cloud record at all: unmeasured
         (False, True, 10.0 * 40 + 10.0)]  # the DP network on another task and regime: its per-step time × 40 steps
+    # a campaign estimates once; an unmeasured job is estimated again before it starts, from the records then
+    assert CostModel.refresh(str(tmp_path / "records"), str(tmp_path / "runs"), camp, rows[5])["seconds"] is None
+    assert CostModel.refresh(str(tmp_path / "records"), str(tmp_path / "runs"), camp, rows[1]) is rows[1]
+    dp3_cfg = camp.run_config("stack_cubes", dp3, 0)
+    pc = tmp_path / "records" / "smoke" / "press_button" / "pointcloud" / "dp" / "seed0.json"
+    pc.parent.mkdir(parents=True)
+    pc.write_text(json.dumps({"policy": config_to_dict(dp3_cfg.policy), "train": config_to_dict(dp3_cfg.train),
+                              "training": {"steps": 10, "wall_time_s": 300.0, "cpu_cores": 1}, "evaluations": {}}))
+    fresh = CostModel.refresh(str(tmp_path / "records"), str(tmp_path / "runs"), camp, rows[5])
+    assert (fresh["done"], fresh["trains"], fresh["seconds"]) == (False, True, 30.0 * steps + 10.0)
     rows = rows[:-1]
     text = Path(paper.write_plan(args, rows)).read_text()
     assert "1 of 6 evaluations recorded" in text and "1 unmeasured" in text

@@ -286,6 +286,14 @@ class CostModel:
             rows.append({"job": job, "done": done, "trains": needs_train, "seconds": seconds})
         return rows
 
+    @classmethod
+    def refresh(cls, records: str, runs: str, camp: Campaign, row: dict) -> dict:
+        """``row`` (an ``estimate`` row) as the records on disk estimate it now when it was unmeasured: a campaign
+        estimates once when it starts, and the first run of an observation type measures the rest of its kind."""
+        if row["done"] or row["seconds"] is not None:
+            return row
+        return cls(records, runs).estimate(camp, [row["job"]])[0]
+
 
 def parse_until(text: str, now: float | None = None) -> float | None:
     """``--until`` as a Unix time: '' → None (no limit); 'HH:MM' → its next occurrence (local time) after ``now``;
