@@ -26,22 +26,23 @@ from hipolicy_jax.runs.budgets import BUDGETS, DP, variant_name
 from hipolicy_jax.checkpoint import config_to_dict
 from hipolicy_jax.runs.campaign import (Campaign, Column, CostModel, Deadline, Job, choose_low_regime, parse_until,
                                         pilot_candidates, schedule, shard)
+from hipolicy_jax.runs import report, tables
 from hipolicy_jax.runs.cli import parse_with_run_inference
 from hipolicy_jax.runs.store import load_run, make_evaluator
 from hipolicy_jax.runs.train import train
 
 TASK = "press_button"
-SMOKE = paper.BUDGETS["smoke"]
+SMOKE = BUDGETS["smoke"]
 
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """The smoke budget's HiPolicy run of press_button, seed 0, trained into a tmp dir (as ``paper`` lays it out)."""
     root = tmp_path_factory.mktemp("paper")
-    args = paper.ExecutionArgs(budget="smoke", tasks=(TASK,), seeds=(0,), runs=str(root / "runs"),
+    args = tables.ExecutionArgs(budget="smoke", tasks=(TASK,), seeds=(0,), runs=str(root / "runs"),
                                results=str(root / "results"), records=str(root / "records"), data=str(root / "data"),
                                progress=False)
-    targs = paper.train_args(args, TASK, "state", (), 0)
+    targs = tables.train_args(args, TASK, "state", (), 0)
     summary = train(targs)
     assert summary["steps"] == SMOKE.train.num_steps
     return args, targs.out_dir()
@@ -208,11 +209,11 @@ def test_calibrate_rollouts(tiny, tmp_path):
 
 
 def test_paper_parsing_and_command_round_trip():
-    for name, cls in paper.SUBCOMMANDS.items():
+    for name, cls in tables.SUBCOMMANDS.items():
         args = paper.parse_args([name, "--budget", "smoke", "--tasks", "latch_door", "press_button",
                                  "--seeds", "3", "4"])
         assert type(args) is cls and args.tasks == ("latch_door", "press_button") and args.seeds == (3, 4)
-        assert paper.parse_args(shlex.split(paper.command_line(args))[3:]) == args
+        assert paper.parse_args(shlex.split(tables.command_line(args))[3:]) == args
     t = paper.parse_args(["thresholds", "--pairs", "5", "50", "20", "80", "--episodes", "7", "--no-progress"])
     assert t.pairs == ((5.0, 50.0), (20.0, 80.0)) and t.episodes == 7 and not t.progress
     h = paper.parse_args(["hparams", "--rows", "3", "8", "3", "1", "8", "2"])
@@ -226,10 +227,10 @@ def test_paper_parsing_and_command_round_trip():
     with pytest.raises(SystemExit):
         paper.parse_args(["figures"])
     # variants are named by their config changes, so tables share runs (DP, HiPolicy)
-    base = paper.BUDGETS["cpu"].policy
-    assert variant_name(paper.hparam_changes(3, 8, 3, base)) == "hipolicy"
-    assert variant_name(paper.hparam_changes(3, 8, 1, base)) == variant_name(paper.DP) == "dp"
-    assert variant_name(paper.hparam_changes(1, 4, 2, base)) == "lc4_lh1_s1-2"
+    base = BUDGETS["cpu"].policy
+    assert variant_name(tables.hparam_changes(3, 8, 3, base)) == "hipolicy"
+    assert variant_name(tables.hparam_changes(3, 8, 1, base)) == variant_name(DP) == "dp"
+    assert variant_name(tables.hparam_changes(1, 4, 2, base)) == "lc4_lh1_s1-2"
     assert variant_name((("objective", "flow"),)) == "flow"
 
 
@@ -252,18 +253,18 @@ def _fake_records(columns, tasks, seeds, rng, episodes=10):
 
 def test_paper_tables_on_fake_numbers(tmp_path, monkeypatch):
     rng = np.random.default_rng(0)
-    monkeypatch.setattr(paper, "collect", lambda args, columns: _fake_records(
+    monkeypatch.setattr(tables, "collect", lambda args, columns: _fake_records(
         [c.label for c in columns], args.tasks, args.seeds, rng))
     common = dict(budget="smoke", seeds=(0, 1, 2), runs=str(tmp_path / "runs"), results=str(tmp_path / "res"),
                   data=str(tmp_path / "data"), progress=False)
     tasks = ("press_button", "latch_door", "stack_cubes")
-    for args in (paper.MainArgs(tasks=tasks, obs_types=("state", "pointcloud"), **common),
-                 paper.AblationArgs(tasks=tasks, **common), paper.ExecutionArgs(tasks=tasks, **common),
-                 paper.ThresholdsArgs(**common), paper.HparamsArgs(tasks=("press_button", "latch_door"), **common)):
+    for args in (tables.MainArgs(tasks=tasks, obs_types=("state", "pointcloud"), **common),
+                 tables.AblationArgs(tasks=tasks, **common), tables.ExecutionArgs(tasks=tasks, **common),
+                 tables.ThresholdsArgs(**common), tables.HparamsArgs(tasks=("press_button", "latch_door"), **common)):
         md = paper.main(args)
-        name = paper.table_name(args)
+        name = tables.table_name(args)
         text = open(md).read()
-        assert paper.command_line(args) in text and "seeds 0, 1, 2" in text and "CPU-hours" in text
+        assert tables.command_line(args) in text and "seeds 0, 1, 2" in text and "CPU-hours" in text
         assert (tmp_path / "res" / f"{name}.png").stat().st_size > 0
         assert len(_load(tmp_path / "res" / f"{name}.json")["records"]) > 0
         table = [line for line in text.splitlines() if line.startswith("|")]
@@ -282,22 +283,22 @@ def test_paper_tables_on_fake_numbers(tmp_path, monkeypatch):
 
 
 def test_table_formatting_helpers():
-    assert paper.mean_std([0.5, 0.7], 100.0) == "60.0 ± 14.1"
-    assert paper.mean_std([0.25], 100.0) == "25.0" and paper.mean_std([float("nan"), None]) == "–"
-    assert paper.mean_std([1.0, float("nan"), 3.0]) == "2.0 ± 1.4"  # seeds without a value are left out
-    md = paper.markdown_table(["Task", "SR"], [["a", "1.0"], ["b", "2.0 ± 0.1"]])
+    assert report.mean_std([0.5, 0.7], 100.0) == "60.0 ± 14.1"
+    assert report.mean_std([0.25], 100.0) == "25.0" and report.mean_std([float("nan"), None]) == "–"
+    assert report.mean_std([1.0, float("nan"), 3.0]) == "2.0 ± 1.4"  # seeds without a value are left out
+    md = report.markdown_table(["Task", "SR"], [["a", "1.0"], ["b", "2.0 ± 0.1"]])
     assert md.splitlines() == ["| Task | SR |", "| :--- | ---: |", "| a | 1.0 |", "| b | 2.0 ± 0.1 |"]
     recs = [{"task": "t", "seed": s, "column": "c", "success_rate": v} for s, v in ((0, 0.2), (1, 0.4))]
-    assert paper.values(recs, "success_rate", (0, 1, 2), task="t", column="c")[:2] == [0.2, 0.4]
-    assert math.isnan(paper.values(recs, "success_rate", (0, 1, 2), task="t", column="c")[2])
+    assert report.values(recs, "success_rate", (0, 1, 2), task="t", column="c")[:2] == [0.2, 0.4]
+    assert math.isnan(report.values(recs, "success_rate", (0, 1, 2), task="t", column="c")[2])
     # an average or a pooled comparison over tasks of which one has no record yet is '–', not a partial average
     ep = [{"task": t, "seed": 0, "column": c, "success_rate": 0.5, "success": [True, False] * 5}
           for t, c in (("a", "base"), ("b", "base"), ("a", "new"))]
-    assert paper.ci(ep, "success_rate", (0,), ["a"], 100.0, column="new") == "50.0 [20.0, 80.0]"
-    assert paper.ci(ep, "success_rate", (0,), ["a", "b"], 100.0, column="new") == "–"
-    assert paper.ci(ep, "success_rate", (0,), ["a", "b"], 100.0, column="base") != "–"
-    assert paper.paired_cell(ep, (0,), ["a"], "new", "base").startswith("+0.0 [+0.0, +0.0], p=1")
-    assert paper.paired_cell(ep, (0,), ["a", "b"], "new", "base") == "–"
+    assert report.ci(ep, "success_rate", (0,), ["a"], 100.0, column="new") == "50.0 [20.0, 80.0]"
+    assert report.ci(ep, "success_rate", (0,), ["a", "b"], 100.0, column="new") == "–"
+    assert report.ci(ep, "success_rate", (0,), ["a", "b"], 100.0, column="base") != "–"
+    assert report.paired_cell(ep, (0,), ["a"], "new", "base").startswith("+0.0 [+0.0, +0.0], p=1")
+    assert report.paired_cell(ep, (0,), ["a", "b"], "new", "base") == "–"
 
 
 @pytest.mark.slow
@@ -414,35 +415,35 @@ def test_train_args_vision_policies_read_proprioception_only():
     assert parse("--policy.encoder.obs-type", "pointcloud") == PROPRIO_DIM == 4
     assert parse("--policy.encoder.obs-type", "image", "--privileged-state") is None
     assert parse("--policy.encoder.obs-type", "image", "--policy.encoder.state-dims", "7") == 7
-    assert paper.train_args(paper.MainArgs(), TASK, "pointcloud", (), 0).policy.encoder.state_dims == PROPRIO_DIM
-    assert paper.train_args(paper.MainArgs(), TASK, "pointcloud", (), 0).policy.encoder.num_points == 256
+    assert tables.train_args(tables.MainArgs(), TASK, "pointcloud", (), 0).policy.encoder.state_dims == PROPRIO_DIM
+    assert tables.train_args(tables.MainArgs(), TASK, "pointcloud", (), 0).policy.encoder.num_points == 256
 
 
 def test_campaign_follows_the_protocol():
     """The campaign's tables are the protocol's: main and execution in both regimes, ablation in Rlow on every task,
     thresholds and hyper-parameters in Rlow on two tasks; baselines get the extra seeds."""
     args = paper.parse_args(["campaign", "--budget", "smoke"])
-    tables = paper.protocol_tables(args)
-    got = [(paper.table_name(t), t.regime, t.tasks) for t in tables]
+    protocol = tables.protocol_tables(args)
+    got = [(tables.table_name(t), t.regime, t.tasks) for t in protocol]
     four = ("press_button", "stack_cubes", "latch_door", "pick_place")
     two = ("press_button", "latch_door")
     assert got == [("main", "r100", four), ("execution", "r100", four), ("main", "rlow", four),
                    ("execution", "rlow", four), ("ablation", "rlow", four), ("thresholds", "rlow", two),
                    ("hparams", "rlow", two)]
-    assert all(t.episodes == 100 and t.baseline_seeds == (3, 4) for t in tables)
-    main = tables[0]
-    dp, hip, dp3, dp3_hip = paper.main_columns(main)  # the DP3 columns are part of the protocol's main table
+    assert all(t.episodes == 100 and t.baseline_seeds == (3, 4) for t in protocol)
+    main = protocol[0]
+    dp, hip, dp3, dp3_hip = tables.main_columns(main)  # the DP3 columns are part of the protocol's main table
     assert dp3.obs_type == dp3_hip.obs_type == "pointcloud"
-    assert paper.column_seeds(main, dp) == (0, 1, 2, 3, 4) and paper.column_seeds(main, hip) == (0, 1, 2)
-    assert paper.column_seeds(main, dp3) == paper.column_seeds(main, dp3_hip) == (0, 1, 2)  # > 5 min a run
-    assert paper.parse_args(shlex.split(paper.command_line(args))[3:]) == args
+    assert tables.column_seeds(main, dp) == (0, 1, 2, 3, 4) and tables.column_seeds(main, hip) == (0, 1, 2)
+    assert tables.column_seeds(main, dp3) == tables.column_seeds(main, dp3_hip) == (0, 1, 2)  # > 5 min a run
+    assert paper.parse_args(shlex.split(tables.command_line(args))[3:]) == args
 
 
 def test_campaign_schedule_completes_paired_comparisons_first():
     """The campaign runs each job once: the protocol's seeds before the baselines' extra seeds, state before point
     clouds, the task with the longest episodes (pick_place) last, else in table order."""
     args = paper.parse_args(["campaign", "--budget", "smoke"])
-    jobs, skipped = paper.campaign_jobs(args, paper.protocol_tables(args))
+    jobs, skipped = tables.campaign_jobs(args, tables.protocol_tables(args))
     assert not skipped and len(jobs) == len(set(jobs))
     stage = [(j.seed not in args.seeds, j.col.obs_type != "state", j.task == "pick_place") for j in jobs]
     assert stage == sorted(stage) and len(set(stage)) == 6  # point clouds have no extra seeds
@@ -463,8 +464,8 @@ def test_campaign_shards_split_runs_and_the_plan_estimates_from_records(tmp_path
     shares and unmeasured observation types are told apart; the plan file sums it."""
     args = paper.parse_args(["campaign", "--budget", "smoke", "--runs", str(tmp_path / "runs"), "--records",
                              str(tmp_path / "records"), "--results", str(tmp_path / "results"), "--no-progress"])
-    camp = paper.campaign(args)
-    jobs, _ = paper.campaign_jobs(args, paper.protocol_tables(args))
+    camp = tables.campaign(args)
+    jobs, _ = tables.campaign_jobs(args, tables.protocol_tables(args))
     def run_of(j):
         return camp.run_config(j.task, j.col, j.seed, dict(j.changes)).out_dir()
 
@@ -515,11 +516,11 @@ def test_campaign_shards_split_runs_and_the_plan_estimates_from_records(tmp_path
     fresh = CostModel.refresh(str(tmp_path / "records"), str(tmp_path / "runs"), camp, rows[5])
     assert (fresh["done"], fresh["trains"], fresh["seconds"]) == (False, True, 30.0 * steps + 10.0)
     rows = rows[:-1]
-    text = Path(paper.write_plan(args, rows)).read_text()
+    text = Path(tables.write_plan(args, rows)).read_text()
     assert "1 of 6 evaluations recorded" in text and "1 unmeasured" in text
     assert f"{(2 * (10.0 * steps + 10.0) + 10.0) / 3600:.1f} CPU-hours" in text
     with pytest.raises(ValueError, match="shard: expected K N with 0 <= K < N, got 2 2"):
-        paper.campaign_table(dataclasses.replace(args, shard=(2, 2)))
+        tables.campaign_table(dataclasses.replace(args, shard=(2, 2)))
 
 
 def test_deadline_starts_only_the_jobs_that_end_before_until():
@@ -558,16 +559,16 @@ def test_campaign_until_skips_what_does_not_fit(tmp_path, capsys):
                              "--obs-types", "state", "--runs", str(tmp_path / "runs"), "--records",
                              str(tmp_path / "records"), "--results", str(tmp_path / "results"), "--data",
                              str(tmp_path / "data"), "--no-progress", "--shard", "0", "2", "--until", "2000-01-01 00:00"])
-    plan = paper.campaign_table(args)
+    plan = tables.campaign_table(args)
     out = capsys.readouterr().out
-    jobs, _ = paper.campaign_jobs(args, paper.protocol_tables(args))
+    jobs, _ = tables.campaign_jobs(args, tables.protocol_tables(args))
     lines = [line for line in out.splitlines() if ": skipped, estimated " in line]
     assert lines and all("s left before --until 2000-01-01 00:00" in line for line in lines)
-    assert len(lines) == len(shard(jobs, 0, 2, lambda j: paper.campaign(args).run_config(
+    assert len(lines) == len(shard(jobs, 0, 2, lambda j: tables.campaign(args).run_config(
         j.task, j.col, j.seed, dict(j.changes)).out_dir()))
     assert not (tmp_path / "runs").exists() and "0 of" in Path(plan).read_text()
     with pytest.raises(ValueError, match="until: expected HH:MM"):
-        paper.campaign_table(dataclasses.replace(args, until="later"))
+        tables.campaign_table(dataclasses.replace(args, until="later"))
 
 
 def test_readme_section_from_table_files(tmp_path):
@@ -652,10 +653,10 @@ def test_results_header_names_each_tasks_regime():
     """A low-data table's header says what the regime changed per task (demos or steps), since the budget's note
     describes R100; R100's header adds nothing."""
     from hipolicy_jax.runs.budgets import REGIMES
-    rlow = paper.AblationArgs(regime="rlow", tasks=tuple(REGIMES["rlow"]))
-    header = paper.results_header("T", rlow, [])
+    rlow = tables.AblationArgs(regime="rlow", tasks=tuple(REGIMES["rlow"]))
+    header = tables.results_header("T", rlow, [])
     for task, changes in REGIMES["rlow"].items():
-        assert f"{task}: {paper._changes_text(changes)}" in header
+        assert f"{task}: {report.changes_text(changes)}" in header
     assert "Regime `rlow` (" in header
-    r100 = paper.results_header("T", paper.AblationArgs(regime="r100"), [])
+    r100 = tables.results_header("T", tables.AblationArgs(regime="r100"), [])
     assert "Regime `r100`;" in r100

@@ -1,0 +1,170 @@
+"""Cells, tables and figures from campaign records (``campaign.Campaign`` evaluations, one dict per (task, seed,
+column)): per-episode outcomes, 95 % bootstrap intervals over seeds × episodes, paired comparisons on the shared
+initial states, the cost of the runs, markdown tables and bar charts. Pure functions of the records; ``tables``
+builds the paper's tables with them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hipolicy_jax.evaluation import stats
+
+def mean_std(values, scale: float = 1.0, digits: int = 1) -> str:
+    """'m ± s' (sample std over seeds) of the finite values, 'm' for one value, '–' for none."""
+    v = np.asarray([x for x in values if x is not None and np.isfinite(x)], np.float64) * scale
+    if v.size == 0:
+        return "–"
+    if v.size == 1:
+        return f"{v[0]:.{digits}f}"
+    return f"{v.mean():.{digits}f} ± {v.std(ddof=1):.{digits}f}"
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    """A GitHub markdown table: the first column left-aligned, the others right-aligned."""
+    lines = ["| " + " | ".join(header) + " |", "| " + " | ".join([":---"] + ["---:"] * (len(header) - 1)) + " |"]
+    lines += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def _matching(records: list[dict], seed: int, match: dict) -> dict | None:
+    hit = [r for r in records if r["seed"] == seed and all(r.get(k) == v for k, v in match.items())]
+    return hit[0] if hit else None
+
+
+def values(records: list[dict], metric: str, seeds, **match) -> list[float]:
+    """Per-seed ``metric`` of the records matching ``match`` (NaN where a seed is missing)."""
+    out = []
+    for s in seeds:
+        r = _matching(records, s, match)
+        v = r.get(metric) if r else None
+        out.append(np.nan if v is None else float(v))
+    return out
+
+
+def outcomes(records: list[dict], metric: str, seeds, **match) -> dict[int, np.ndarray]:
+    """Per seed, the per-episode outcomes behind ``metric`` of the matching records: success (0/1) for
+    ``success_rate``, the steps of the successful episodes (NaN for failures) for ``mean_steps_success``, the
+    decisions per episode for ``mean_decisions``; the per-seed value itself where a record has no episodes."""
+    out = {}
+    for s in seeds:
+        r = _matching(records, s, match)
+        if r is None:
+            continue
+        if "success" in r and metric in ("success_rate", "mean_steps_success", "mean_decisions"):
+            success = np.asarray(r["success"], np.float64)
+            if metric == "success_rate":
+                out[s] = success
+            elif metric == "mean_steps_success":
+                out[s] = np.where(success > 0, np.asarray(r["steps"], np.float64), np.nan)
+            elif "decisions" in r:
+                out[s] = np.asarray(r["decisions"], np.float64)
+        if s not in out and r.get(metric) is not None:
+            out[s] = np.asarray([r[metric]], np.float64)
+    return out
+
+
+def interval_text(iv: stats.Interval, scale: float = 1.0, digits: int = 1) -> str:
+    """'m [lo, hi]' (a 95 % bootstrap interval), 'm' when it has no width, '–' when undefined."""
+    if not np.isfinite(iv.mean):
+        return "–"
+    m, lo, hi = (x * scale for x in iv)
+    if lo == hi:
+        return f"{m:.{digits}f}"
+    return f"{m:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+
+
+def ci(records: list[dict], metric: str, seeds, tasks, scale: float = 1.0, **match) -> str:
+    """The cell of ``metric`` over ``tasks`` (one task: its seeds × episodes; several: the task average)."""
+    groups = [outcomes(records, metric, seeds, task=t, **match) for t in tasks]
+    if len(groups) > 1 and not all(groups):
+        return "–"  # an average over some of the tasks is not the tasks' average
+    iv = stats.bootstrap_mean(groups[0]) if len(groups) == 1 else stats.bootstrap_average(groups)
+    return interval_text(iv, scale)
+
+
+def paired_cell(records: list[dict], seeds, tasks, new: str, base: str) -> str:
+    """``new`` − ``base`` success in points on the shared initial states: 'Δ [lo, hi], p=… (wins / ties / loses)'
+    with the hierarchical bootstrap interval and the exact McNemar test, pooled over ``tasks``."""
+    a = [outcomes(records, "success_rate", seeds, task=t, column=new) for t in tasks]
+    b = [outcomes(records, "success_rate", seeds, task=t, column=base) for t in tasks]
+    diffs = []
+    for x, y in zip(a, b):
+        shared = sorted(set(x) & set(y))
+        if shared and all(x[s].size == y[s].size > 1 for s in shared):
+            diffs.append({s: x[s] - y[s] for s in shared})
+    if len(diffs) < len(tasks):  # a task without a pair: no pooled comparison over these tasks yet
+        return "–"
+    iv = stats.bootstrap_mean(diffs[0]) if len(diffs) == 1 else stats.bootstrap_average(diffs)
+    pooled_a = {(i, s): v for i, x in enumerate(a) for s, v in x.items()}
+    pooled_b = {(i, s): v for i, y in enumerate(b) for s, v in y.items()}
+    _, _, p = stats.mcnemar_exact({k: v > 0 for k, v in pooled_a.items()}, {k: v > 0 for k, v in pooled_b.items()})
+    return f"{iv.mean * 100:+.1f} [{iv.low * 100:+.1f}, {iv.high * 100:+.1f}], p={p:.2g} ({stats.verdict(iv)})"
+
+
+def cost_note(records: list[dict]) -> str:
+    """What the table's runs and evaluations cost (from the records: training wall time of each distinct run,
+    evaluation time of each evaluation, each × the cores its process ran on: 2 unless the record says otherwise),
+    in CPU-hours of this 2-core machine kind."""
+    train = {r["run"]: ((r.get("training_s") or 0.0), r.get("training_cores") or 2) for r in records}
+    train_s = sum(s for s, _ in train.values())
+    eval_s = sum(r.get("eval_s") or 0.0 for r in records)
+    cpu_h = (sum(s * c for s, c in train.values()) + sum((r.get("eval_s") or 0.0) * (r.get("cpu_cores") or 2)
+                                                          for r in records)) / 3600
+    return (f"Cost: {cpu_h:.1f} CPU-hours on this 2-core machine kind (wall time × the cores each process ran on; "
+            f"{train_s / 3600:.1f} h training {len(train)} runs, {eval_s / 3600:.1f} h evaluating), from the records.")
+
+
+def bar_figure(path: str, groups: list[str], panels: list[tuple[str, dict[str, list[dict]]]], title: str,
+               scale: float = 1.0) -> str:
+    """Grouped bar chart(s): per panel (ylabel, {series: per-group per-seed outcomes}), the mean with its 95 %
+    bootstrap interval as the error bar."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(panels), figsize=(max(5.0, 1.3 * len(groups) + 2.5) * len(panels), 3.6),
+                             squeeze=False)
+    for ax, (ylabel, series) in zip(axes[0], panels):
+        width = 0.8 / max(len(series), 1)
+        x = np.arange(len(groups))
+        for i, (name, per_group) in enumerate(series.items()):
+            ivs = [stats.bootstrap_mean(g, resamples=2000) for g in per_group]
+            means = np.array([iv.mean for iv in ivs]) * scale
+            err = np.array([[iv.mean - iv.low, iv.high - iv.mean] for iv in ivs]).T * scale
+            ax.bar(x + (i - (len(series) - 1) / 2) * width, means, width, yerr=np.nan_to_num(err), capsize=2,
+                   label=name)
+        ax.set_xticks(x, groups, rotation=20, ha="right", fontsize=8)
+        ax.set_ylabel(ylabel)
+        ax.legend(fontsize=7)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def relative_gain(base: float, new: float) -> str:
+    """' (+x%)': relative change of ``new`` over ``base`` ('' when undefined)."""
+    return f" ({(new - base) / base * 100:+.0f}%)" if np.isfinite(base) and np.isfinite(new) and base > 0 else ""
+
+
+def task_mean(records, metric, seeds, tasks, column) -> float:
+    groups = [outcomes(records, metric, seeds, task=t, column=column) for t in tasks]
+    return stats.bootstrap_average(groups, resamples=1).mean if all(groups) else float("nan")
+
+
+def stride_cell(records, seeds, **match) -> str:
+    hits = [r for r in records if r["seed"] in seeds and all(r.get(k) == v for k, v in match.items())]
+    keys = sorted({k for r in hits for k in r if k.startswith("stride") and k.endswith("_frac")},
+                  key=lambda k: int(k[6:-5]))
+    if not keys:
+        return "–"
+    return "/".join(f"{100 * np.mean([r.get(k, 0.0) for r in hits]):.0f}" for k in keys)
+
+
+def changes_text(changes: dict) -> str:
+    if "episodes" in changes:
+        return f"{changes['episodes']} demos"
+    return ", ".join(f"{k.removeprefix('train.').replace('_', ' ')} {v}" for k, v in changes.items()) or "100 demos"

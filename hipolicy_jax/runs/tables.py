@@ -1,0 +1,691 @@
+"""The paper's tables (results/PROTOCOL.md) as a library stage: one args dataclass a table (``SUBCOMMANDS``), one
+builder a table (``BUILDERS``; ``build(args)`` → the path of its markdown), and the campaign that runs every table's
+evaluations under one progress bar. ``experiments.paper`` parses the flags into these dataclasses and calls ``build``.
+
+Each table trains and evaluates through ``campaign.Campaign`` (or reads its records with ``from_records``) and writes
+``<results>/<table>[_rlow].{md,json,png}``; its cells come from ``report``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shlex
+import time
+from typing import Any, Literal
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from hipolicy_jax.config import PolicyConfig
+from hipolicy_jax.envs import TASK_PRECISE
+from hipolicy_jax.evaluation import stats
+from hipolicy_jax.runs.budgets import BUDGETS, DP, REGIMES, regime_changes, run_config
+from hipolicy_jax.runs.campaign import (README_BEGIN, README_END, Campaign, Column, CostModel, Deadline, Job,
+                                        choose_low_regime, parse_until, pilot_candidates, readme_section, schedule,
+                                        shard, update_readme)
+from hipolicy_jax.runs.report import (bar_figure, changes_text, ci, cost_note, markdown_table, outcomes, paired_cell,
+                                      relative_gain, stride_cell, task_mean)
+from hipolicy_jax.runs.store import write_json
+from hipolicy_jax.runs.train import RunConfig, cpu_cores
+
+TaskName = Literal["press_button", "latch_door", "stack_cubes", "pick_place"]
+ObsName = Literal["state", "image", "pointcloud"]
+TABLES = ("main", "ablation", "execution", "thresholds", "hparams", "pilot", "campaign")
+BASELINE_NAME = {"state": "DP", "image": "DP (image)", "pointcloud": "DP3"}
+
+
+@dataclasses.dataclass(frozen=True)
+class PaperArgs:
+    budget: Literal["smoke", "cpu", "gpu"] = "cpu"
+    tasks: tuple[TaskName, ...] = ("press_button", "stack_cubes", "latch_door", "pick_place")
+    seeds: tuple[int, ...] = (0, 1, 2)
+    baseline_seeds: tuple[int, ...] = ()  # more seeds for the single-frequency baseline columns (the protocol: 3 4,
+    # as their runs train in under 5 minutes)
+    regime: Literal["r100", "rlow"] = "r100"  # demo regime (results/PROTOCOL.md): 100 demos, or the pilot's Rlow
+    runs: str = "runs/paper"  # run dirs: <runs>/<budget>/<task>/<obs>/<variant>/seed<k>
+    results: str = "results"  # <results>/<table>.{md,png,json}
+    records: str = "results/runs"  # per-run JSON records (committed): <records>/<budget>/<task>/<obs>/<variant>/...
+    data: str = "data"  # demo buffers: <data>/<task>_<obs keys>_<episodes>.zarr
+    episodes: int | None = None  # evaluation episodes per seed (default: the budget's)
+    from_records: bool = False  # build the table from the records alone: never train nor evaluate
+    progress: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class MainArgs(PaperArgs):
+    """DP vs DP+HiPolicy (and DP3 vs DP3+HiPolicy with --obs-types state pointcloud), precise / non-precise."""
+
+    obs_types: tuple[ObsName, ...] | None = None  # default: state; on the gpu budget state and pointcloud
+
+    def resolved_obs_types(self) -> tuple[str, ...]:
+        if self.obs_types is not None:
+            return tuple(self.obs_types)
+        return ("state", "pointcloud") if self.budget == "gpu" else ("state",)
+
+
+@dataclasses.dataclass(frozen=True)
+class AblationArgs(PaperArgs):
+    """Observation condition hier / low / high, w/o fusion, w/o hierarchy (one stride)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ExecutionArgs(PaperArgs):
+    """Execution strategies: DP (whole chunks), DP+TE (temporal ensembling), DP+AAC (adaptive action chunking),
+    HiPolicy always at stride 1 (w/o EG) and entropy-guided (HiPolicy)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class CampaignArgs(PaperArgs):
+    """The whole protocol: every table's runs and evaluations under one progress bar, then every table."""
+
+    baseline_seeds: tuple[int, ...] = (3, 4)
+    episodes: int | None = 100
+    regimes: tuple[Literal["r100", "rlow"], ...] = ("r100", "rlow")
+    obs_types: tuple[ObsName, ...] = ("state", "pointcloud")  # main table in R100: DP and the DP3 columns
+    readme: str = "README.md"  # its campaign section (between the markers) is rewritten from the tables; '' = leave it
+    plan: bool = False  # write what is left (evaluations, runs to train, estimated CPU-hours) and stop
+    # K N: only the K-th (0-based) of N shards of the runs, so that N processes split the campaign — one per core
+    # (`taskset -c K`) or per machine sharing the records; every evaluation of a run is in its run's shard. A shard
+    # ends by writing the plan of what is left; build the tables with --from-records once every shard has finished
+    shard: tuple[int, int] = (0, 1)
+    # HH:MM or YYYY-MM-DD HH:MM (local time): start only the jobs whose estimated time ends before it, skip the rest
+    # (a scheduler's time limit, a session's end); '' = no limit
+    until: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class PilotArgs(PaperArgs):
+    """The protocol's DP-only pilot that chooses each task's Rlow regime (seed 0)."""
+
+    seeds: tuple[int, ...] = (0,)
+
+
+@dataclasses.dataclass(frozen=True)
+class ThresholdsArgs(PaperArgs):
+    """Entropy thresholds at several percentile pairs of held-out demo entropies."""
+
+    tasks: tuple[TaskName, ...] = ("press_button",)
+    pairs: tuple[tuple[float, float], ...] = ((10.0, 70.0), (40.0, 90.0), (3.0, 40.0))
+
+
+@dataclasses.dataclass(frozen=True)
+class HparamsArgs(PaperArgs):
+    """Observation horizon L_h, chunk length L_c and number of frequencies M (strides 1..M)."""
+
+    tasks: tuple[TaskName, ...] = ("press_button",)
+    rows: tuple[tuple[int, int, int], ...] = ((3, 8, 3), (1, 8, 3), (5, 8, 3), (3, 4, 3), (3, 8, 1))
+
+
+SUBCOMMANDS: dict[str, type] = {"main": MainArgs, "ablation": AblationArgs, "execution": ExecutionArgs,
+                                "thresholds": ThresholdsArgs, "hparams": HparamsArgs, "pilot": PilotArgs,
+                                "campaign": CampaignArgs}
+
+
+def table_name(args: PaperArgs) -> str:
+    return next(k for k, v in SUBCOMMANDS.items() if type(args) is v)
+
+
+def command_line(args: PaperArgs) -> str:
+    """The exact command reproducing ``args`` (every field spelled out; parses back to ``args``)."""
+    parts = ["python", "-m", "experiments.paper", table_name(args)]
+    for f in dataclasses.fields(args):
+        value, flag = getattr(args, f.name), "--" + f.name.replace("_", "-")
+        if isinstance(value, bool):
+            parts.append(flag if value else "--no-" + f.name.replace("_", "-"))
+        elif value is None:
+            parts += [flag, "None"]
+        elif isinstance(value, tuple):
+            flat = [x for v in value for x in (v if isinstance(v, tuple) else (v,))]
+            parts += [flag, *(f"{x:g}" if isinstance(x, float) else str(x) for x in flat)]
+        else:
+            parts += [flag, str(value)]
+    return shlex.join(parts)
+
+
+# ----------------------------------------------------------------------------------------------------- runs
+
+
+def eval_episodes(args: PaperArgs) -> int:
+    """Evaluation episodes per seed: ``--episodes`` or the budget's."""
+    return BUDGETS[args.budget].eval.episodes if args.episodes is None else args.episodes
+
+
+def train_args(args: PaperArgs, task: str, obs_type: str, changes, seed: int) -> RunConfig:
+    """The ``RunConfig`` of one run (``budgets.run_config`` with this table's directories and episodes)."""
+    return run_config(args.budget, task, obs_type, changes, seed, runs=args.runs, data=args.data,
+                      eval_episodes=eval_episodes(args), progress=args.progress)
+
+
+def column_seeds(args: PaperArgs, col: Column) -> tuple[int, ...]:
+    """The seeds a column is evaluated on: ``seeds``, plus ``baseline_seeds`` for the single-frequency state
+    baselines (the columns whose runs train in under 5 minutes here, results/PROTOCOL.md)."""
+    extra = tuple(col.changes) == DP and col.obs_type == "state"
+    return tuple(args.seeds) + (tuple(args.baseline_seeds) if extra else ())
+
+
+def table_seeds(args: PaperArgs) -> tuple[int, ...]:
+    """Every seed any column of the table has (cells use the seeds their column has)."""
+    return tuple(dict.fromkeys((*args.seeds, *args.baseline_seeds)))
+
+
+def campaign(args: PaperArgs) -> Campaign:
+    return Campaign(args.budget, runs=args.runs, data=args.data, records=args.records, episodes=eval_episodes(args),
+                    from_records=args.from_records, progress=args.progress)
+
+
+def _table_record(camp: Campaign, task: str, col: Column, seed: int, run_changes: dict, evaluation: dict) -> dict:
+    """One row of a table's JSON: the evaluation's numbers, its run dir and the run's training time."""
+    run = camp.run_config(task, col, seed, run_changes).out_dir()
+    training = camp.record(task, col, seed, run_changes).get("training") or {}
+    return {"task": task, "seed": seed, "column": col.label, "regime": run_changes, "run": os.path.relpath(run),
+            "training_s": training.get("wall_time_s"), "training_cores": training.get("cpu_cores"), **{k: v for k, v in evaluation.items() if k != "settings"}}
+
+
+def collect(args: PaperArgs, columns: list[Column]) -> list[dict]:
+    """Every (task, seed, column) evaluation of the table, from its run's record or trained / evaluated and recorded
+    (one progress bar over them, with an ETA) → one record per evaluation (per-episode outcomes included)."""
+    camp = campaign(args)
+    jobs = [(t, s, c) for t in args.tasks for c in columns for s in column_seeds(args, c)]
+    records, missing = [], []
+    bar = tqdm(jobs, desc=f"{table_name(args)} ({args.regime})", unit="eval", disable=not args.progress,
+               dynamic_ncols=True)
+    for task, seed, col in bar:
+        bar.set_postfix_str(f"{task} seed {seed} {col.label}")
+        evaluation = camp.evaluate(task, col, seed, regime_changes(args.regime, task))
+        if evaluation is None:
+            missing.append(f"{task} seed {seed} {col.label}")
+            continue
+        records.append(_table_record(camp, task, col, seed, regime_changes(args.regime, task), evaluation))
+        steps = evaluation["mean_steps_success"]  # None (NaN in the record) when no episode succeeded
+        tqdm.write(f"[paper] {task} seed {seed} {col.label}: success {evaluation['success_rate']:.2f}, steps "
+                   f"(successful) {'–' if steps is None else f'{steps:.1f}'}")
+    if missing:
+        print(f"[paper] {len(missing)} evaluations have no record under {args.records} (shown as '–'): "
+              + "; ".join(missing[:8]) + (" ..." if len(missing) > 8 else ""), flush=True)
+    return records
+
+
+def regime_text(args: PaperArgs) -> str:
+    """What the regime changes per task, e.g. ' (press_button: 25 demos; pick_place: num steps 8000; these replace
+    the budget's demos or steps)'; '' for R100, which changes nothing."""
+    parts = []
+    for task in args.tasks:
+        try:
+            changes = regime_changes(args.regime, task)
+        except ValueError:
+            continue
+        if changes:
+            parts.append(f"{task}: {changes_text(changes)}")
+    return f" ({'; '.join(parts)}; these replace the budget's demos or steps)" if parts else ""
+
+
+def results_header(title: str, args: PaperArgs, notes: list[str]) -> str:
+    b = BUDGETS[args.budget]
+    lines = [f"# {title}", "", f"Command: `{command_line(args)}`", "",
+             f"Protocol: `results/PROTOCOL.md`. Regime `{args.regime}`{regime_text(args)}; seeds {', '.join(str(s) for s in args.seeds)}"
+             + (f" (single-frequency baselines also {', '.join(map(str, args.baseline_seeds))})"
+                if args.baseline_seeds else "") + ". "
+             f"Cells: mean over seeds with its 95 % bootstrap interval over seeds × episodes. Budget "
+             f"`{args.budget}`: {b.note}; evaluation episodes: {eval_episodes(args)} per seed, the same initial "
+             f"states for every column."]
+    lines += [""] + [f"- {n}" for n in notes] if notes else []
+    return "\n".join(lines) + "\n"
+
+
+def write_results(args: PaperArgs, title: str, notes: list[str], table: str, records: list[dict],
+                  figure=None) -> str:
+    """Write ``<results>/<table>[_rlow].md`` (+ ``.json`` with every record, + ``.png`` from ``figure(path)``)."""
+    name = table_name(args) + ("" if args.regime == "r100" else f"_{args.regime}")
+    os.makedirs(args.results, exist_ok=True)
+    md = os.path.join(args.results, f"{name}.md")
+    with open(md, "w") as f:
+        f.write(results_header(title, args, [*notes, cost_note(records)]) + "\n" + table + "\n")
+    write_json(os.path.join(args.results, f"{name}.json"),
+               {"command": command_line(args), "args": dataclasses.asdict(args), "records": records})
+    if figure is not None:
+        figure(os.path.join(args.results, f"{name}.png"))
+    return md
+
+
+def success_by_task_figure(args: PaperArgs, records: list[dict], labels: list[str], title: str):
+    """``figure(path)``: success-rate bars per task, one bar per column label."""
+    def figure(path):
+        series = {c: [outcomes(records, "success_rate", table_seeds(args), task=t, column=c) for t in args.tasks]
+                  for c in labels}
+        return bar_figure(path, list(args.tasks), [("success rate (%)", series)], title, scale=100.0)
+
+    return figure
+
+
+def grouped_rows(args: PaperArgs, records, columns: list[str], metric: str = "success_rate", scale: float = 100.0,
+                 extra=None, rel_to: dict[str, str] | None = None,
+                 paired: list[tuple[str, str]] = ()) -> list[list[str]]:
+    """Rows per task, precise tasks first then non-precise, each group followed by its average, then the total.
+    ``extra(task) -> list[str]`` adds leading cells; ``rel_to`` {column: baseline column} adds relative gains to
+    average rows; ``paired`` [(new, base)] adds a paired-comparison cell per pair."""
+    rows = []
+    precise = [t for t in args.tasks if TASK_PRECISE[t]]
+    other = [t for t in args.tasks if not TASK_PRECISE[t]]
+    n_extra = len(extra(args.tasks[0])) if extra else 0
+
+    def cells(tasks):
+        out = []
+        for c in columns:
+            gain = ""
+            if rel_to and c in rel_to and len(tasks) > 1:
+                gain = relative_gain(task_mean(records, metric, table_seeds(args), tasks, rel_to[c]),
+                            task_mean(records, metric, table_seeds(args), tasks, c))
+            out.append(ci(records, metric, table_seeds(args), tasks, scale, column=c) + gain)
+        return out + [paired_cell(records, table_seeds(args), tasks, new, base) for new, base in paired]
+
+    for name, tasks in (("precise", precise), ("non-precise", other)):
+        for t in tasks:
+            rows.append([t] + (extra(t) if extra else []) + cells([t]))
+        if tasks and precise and other:
+            rows.append([f"**Average ({name})**"] + [""] * n_extra + cells(tasks))
+    rows.append([f"**{'Total average' if precise and other else 'Average'}**"] + [""] * n_extra
+                + cells(list(args.tasks)))
+    return rows
+
+
+def demo_steps(args: PaperArgs, task: str, obs_types: tuple[str, ...] = ("state",)) -> str:
+    """Mean demo length (control steps) of the task's first existing demo buffer, '–' before one exists."""
+    from hipolicy_jax.data.replay_buffer import ReplayBuffer
+
+    for obs in obs_types:
+        path = train_args(args, task, obs, (), args.seeds[0]).data_path()
+        if os.path.exists(path):
+            return f"{ReplayBuffer.load(path).episode_lengths().mean():.0f}"
+    return "–"
+
+
+# ------------------------------------------------------------------------------------------------ tables
+
+
+def main_columns(args: MainArgs) -> list[Column]:
+    columns = []
+    for obs in args.resolved_obs_types():
+        base = BASELINE_NAME[obs]
+        columns += [Column(base, obs, DP), Column(f"{base}+HiPolicy", obs)]
+    return columns
+
+
+def main_table(args: MainArgs) -> str:
+    columns = main_columns(args)
+    obs_types = args.resolved_obs_types()
+    records = collect(args, columns)
+    labels = [c.label for c in columns]
+    rel = {f"{BASELINE_NAME[o]}+HiPolicy": BASELINE_NAME[o] for o in obs_types}
+    pairs = [(f"{BASELINE_NAME[o]}+HiPolicy", BASELINE_NAME[o]) for o in obs_types]
+    rows = grouped_rows(args, records, labels, rel_to=rel, paired=pairs,
+                        extra=lambda t: ["yes" if TASK_PRECISE[t] else "no", demo_steps(args, t, obs_types)])
+    table = markdown_table(["Task", "Precise", "Demo steps", *labels, *(f"{a} − {b} (points)" for a, b in pairs)],
+                           rows)
+    notes = ["Success rate (%) with entropy-guided execution, thresholds calibrated on held-out demos "
+             "(10th / 70th percentiles); relative gain over the baseline in the average rows.",
+             "Paired columns: the per-episode success difference on the shared initial states (seeds both columns "
+             "have), its 95 % bootstrap interval and the exact McNemar p; wins / loses when the interval excludes 0.",
+             "DP = one stride (single-frequency Diffusion Policy); DP3 = point-cloud encoder, sample prediction."]
+    if "pointcloud" in obs_types:
+        pc = train_args(args, args.tasks[0], "pointcloud", (), args.seeds[0]).policy.encoder
+        notes.append(f"DP3 columns: {pc.num_points} points (xyz{'+rgb' if pc.point_dims == 6 else ''}) from one "
+                     f"ray-cast camera plus proprioception (the first {pc.state_dims} state features: TCP xyz, "
+                     "gripper); the DP columns read the full state (proprioception and object poses).")
+
+    figure = success_by_task_figure(args, records, labels, "main results")
+    return write_results(args, "Main results: success rate (%)", notes, table, records, figure)
+
+
+ABLATION = [("Hier.", ()), ("Low", (("model.condition", "low"),)), ("High", (("model.condition", "high"),)),
+            ("w/o Fusion", (("model.fusion", False),)), ("w/o Hier.", DP)]
+
+
+def ablation_table(args: AblationArgs) -> str:
+    columns = [Column(label, "state", changes) for label, changes in ABLATION]
+    records = collect(args, columns)
+    labels = [c.label for c in columns]
+    rows = grouped_rows(args, records, labels, paired=[("Hier.", "w/o Hier.")])
+    table = markdown_table(["Task", *labels, "Hier. − w/o Hier. (points)"], rows)
+    notes = ["Success rate (%) with entropy-guided execution. Condition: every frequency segment conditioned on its "
+             "own frequency's observations (Hier.), or all on the lowest (Low) / highest (High); w/o Fusion: no "
+             "CLS-token attention; w/o Hier.: one stride (DP)."]
+
+    figure = success_by_task_figure(args, records, labels, "ablation")
+    return write_results(args, "Ablation: success rate (%)", notes, table, records, figure)
+
+
+PANELS = (("success rate (%)", "success_rate", 100.0), ("steps (successful)", "mean_steps_success", 1.0))
+EXECUTION = [Column("DP", "state", DP), Column("DP+TE", "state", DP, execution="te"),
+             Column("DP+AAC", "state", DP, execution="aac"), Column("w/o EG", "state", (), guided=False),
+             Column("HiPolicy")]
+
+
+def execution_table(args: ExecutionArgs) -> str:
+    records = collect(args, EXECUTION)
+    labels = [c.label for c in EXECUTION]
+    header = ["Task", *(f"{c} {m}" for c in labels for m in ("SR", "Steps", "Decisions")), "HiPolicy strides (%)",
+              "HiPolicy − DP+TE (points)", "HiPolicy − DP+AAC (points)", "HiPolicy − DP (points)"]
+    rows = []
+    groups = [[t] for t in args.tasks] + ([list(args.tasks)] if len(args.tasks) > 1 else [])
+    for tasks in groups:
+        label = tasks[0] if len(tasks) == 1 else "**Average**"
+        cells = [label]
+        for c in labels:
+            cells += [ci(records, "success_rate", table_seeds(args), tasks, 100.0, column=c),
+                      ci(records, "mean_steps_success", table_seeds(args), tasks, column=c),
+                      ci(records, "mean_decisions", table_seeds(args), tasks, column=c)]
+        every_task = all(any(r["task"] == t and r["column"] == "HiPolicy" for r in records) for t in tasks)
+        cells.append(stride_cell(records, table_seeds(args), column="HiPolicy",
+                                  **({"task": tasks[0]} if len(tasks) == 1 else {})) if every_task else "–")
+        cells += [paired_cell(records, table_seeds(args), tasks, "HiPolicy", "DP+TE"),
+                  paired_cell(records, table_seeds(args), tasks, "HiPolicy", "DP+AAC"),
+                  paired_cell(records, table_seeds(args), tasks, "HiPolicy", "DP")]
+        rows.append(cells)
+    table = markdown_table(header, rows)
+    notes = ["SR: success rate (%). Steps: mean control steps of the successful episodes. Decisions: policy calls "
+             "per episode (each one N-sample sampler call).",
+             "DP: one stride, whole chunks (L_c actions per decision); DP+TE: the same DP run with ACT's temporal "
+             "ensembling (a decision at every step, weights exp(-0.01 i)); DP+AAC: the same DP run with adaptive "
+             "action chunking (k of L_c actions, k from the entropy curve of the N samples); w/o EG: the HiPolicy "
+             "run always at stride 1; HiPolicy: entropy-guided execution with the calibrated thresholds.",
+             "Strides: share of HiPolicy's decisions executed at stride 1/2/3."]
+
+    def figure(path):
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(6.5, 4.2))
+        for i, t in enumerate(args.tasks):
+            for j, c in enumerate(labels):
+                seeds = table_seeds(args)
+                sr = stats.bootstrap_mean(outcomes(records, "success_rate", seeds, task=t, column=c),
+                                          resamples=1).mean
+                steps = stats.bootstrap_mean(outcomes(records, "mean_steps_success", seeds, task=t, column=c),
+                                             resamples=1).mean
+                ax.scatter(steps, 100 * sr, color=f"C{j}", marker="os^Dv"[i % 5], s=40,
+                           label=c if i == 0 else None)
+        ax.set_xlabel("steps to success (control steps, lower is faster)")
+        ax.set_ylabel("success rate (%)")
+        ax.set_title("speed / success of the execution strategies (marker: task)", fontsize=9)
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        return path
+
+    return write_results(args, "Execution strategies: success rate (%), steps to success and decisions", notes, table,
+                         records, figure)
+
+
+def thresholds_columns(args: ThresholdsArgs) -> list[Column]:
+    return [Column(f"p{a:g}/p{b:g}", percentiles=(a, b)) for a, b in args.pairs] + \
+        [Column("always stride 1", guided=False)]
+
+
+def thresholds_table(args: ThresholdsArgs) -> str:
+    columns = thresholds_columns(args)
+    records = collect(args, columns)
+    header = ["Task", "Percentiles", "Thresholds", "SR (%)", "Steps", "Strides 1/2/3 (%)"]
+    rows = []
+    for t in args.tasks:
+        for c in columns:
+            hits = [r for r in records if r["task"] == t and r["column"] == c.label]
+            th = [r["thresholds"] for r in hits if r.get("thresholds")]
+            th_cell = ("{" + ", ".join(f"{np.mean([x[k] for x in th]):.2f}" for k in range(1, len(th[0]) - 1)) + "}"
+                       if th else "–")
+            seeds = table_seeds(args)
+            rows.append([t, c.label, th_cell, ci(records, "success_rate", seeds, [t], 100.0, column=c.label),
+                         ci(records, "mean_steps_success", seeds, [t], column=c.label),
+                         stride_cell(records, seeds, task=t, column=c.label)])
+    table = markdown_table(header, rows)
+    notes = ["Inner thresholds at the given percentiles of the run's held-out demo entropies (mean over seeds); "
+             "higher thresholds execute the highest frequency more often.",
+             "Steps: mean control steps of the successful episodes."]
+
+    def figure(path):
+        labels = [c.label for c in columns]
+        panels = [(ylabel, {t: [outcomes(records, metric, table_seeds(args), task=t, column=c) for c in labels]
+                            for t in args.tasks})
+                  for ylabel, metric, _ in PANELS]
+        return bar_figure(path, labels, panels, "threshold ablation")
+
+    return write_results(args, "Entropy thresholds ablation", notes, table, records, figure)
+
+
+def hparam_changes(lh: int, lc: int, m: int, base: PolicyConfig) -> tuple[tuple[str, Any], ...]:
+    """Config changes of an (L_h, L_c, M) row relative to the budget's policy (strides 1..M)."""
+    changes = []
+    if lh != base.chunk.obs_horizon:
+        changes.append(("chunk.obs_horizon", lh))
+    if lc != base.chunk.chunk_len:
+        changes.append(("chunk.chunk_len", lc))
+    if tuple(range(1, m + 1)) != base.chunk.strides:
+        changes.append(("chunk.strides", tuple(range(1, m + 1))))
+    return tuple(sorted(changes))
+
+
+def hparams_columns(args: HparamsArgs) -> list[Column]:
+    base = BUDGETS[args.budget].policy
+    return [Column(f"L_h={lh}, L_c={lc}, M={m}", "state", hparam_changes(lh, lc, m, base)) for lh, lc, m in args.rows]
+
+
+def hparams_table(args: HparamsArgs) -> str:
+    columns = hparams_columns(args)
+    records = collect(args, columns)
+    rows = []
+    for (lh, lc, m), c in zip(args.rows, columns):
+        per_task = [ci(records, "success_rate", table_seeds(args), [t], 100.0, column=c.label) for t in args.tasks]
+        avg = ci(records, "success_rate", table_seeds(args), list(args.tasks), 100.0, column=c.label)
+        default = " (default)" if not c.changes else ""
+        rows.append([f"{lh}{default}", str(lc), str(m), *per_task] + ([avg] if len(args.tasks) > 1 else []))
+    header = ["L_h", "L_c", "M", *args.tasks] + (["Average"] if len(args.tasks) > 1 else [])
+    table = markdown_table(header, rows)
+    notes = ["Success rate (%) with entropy-guided execution; M frequencies = strides 1..M (M=1 is DP)."]
+
+    def figure(path):
+        series = {t: [outcomes(records, "success_rate", table_seeds(args), task=t, column=c.label) for c in columns]
+                  for t in args.tasks}
+        return bar_figure(path, [c.label for c in columns], [("success rate (%)", series)],
+                          "hyper-parameter ablation", scale=100.0)
+
+    return write_results(args, "Hyper-parameter ablation: success rate (%)", notes, table, records, figure)
+
+
+def pilot_table(args: PilotArgs) -> str:
+    """The protocol's DP-only pilot: DP (seed ``args.seeds[0]``) at 100 demos, then the Rlow candidates until one
+    lands in [15, 85] %; writes ``<results>/pilot.md`` / ``.json`` with the choice per task (to be recorded in
+    results/PROTOCOL.md and ``runs.budgets.REGIMES['rlow']`` before any HiPolicy run of that regime)."""
+    camp = campaign(args)
+    dp = Column("DP", "state", DP)
+    seed = args.seeds[0]
+    rows, records, choices = [], [], {}
+    for task in tqdm(args.tasks, desc="pilot", unit="task", disable=not args.progress):
+        base = camp.evaluate(task, dp, seed)
+        tried = []
+        if base is not None:
+            records.append(_table_record(camp, task, dp, seed, {}, base))
+            for changes in pilot_candidates(base["success_rate"]):
+                ev = camp.evaluate(task, dp, seed, changes)
+                if ev is None:
+                    break
+                tried.append((changes, ev["success_rate"]))
+                records.append(_table_record(camp, task, dp, seed, changes, ev))
+                if 0.15 <= ev["success_rate"] <= 0.85:
+                    break
+        if tried:
+            choice, in_range = choose_low_regime(tried)
+            choices[task] = {"run_changes": choice, "in_range": in_range}
+        desc = ", ".join(f"{changes_text(c)}: {100 * sr:.0f} %" for c, sr in tried) or "–"
+        chosen = changes_text(choices[task]["run_changes"]) + ("" if choices[task]["in_range"] else
+                                                               " (closest to 50 %, none in range)") \
+            if task in choices else "–"
+        rows.append([task, "–" if base is None else f"{100 * base['success_rate']:.0f}", desc, chosen])
+    table = markdown_table(["Task", "DP @ 100 demos (%)", "Candidates tried (DP success)", "Rlow"], rows)
+    regimes = {t: c["run_changes"] for t, c in choices.items()}
+    notes = [f"DP only (one stride), seed {seed}, {eval_episodes(args)} evaluation episodes per candidate.",
+             f"Record the choice in results/PROTOCOL.md and in hipolicy_jax/runs/budgets.py: "
+             f"`REGIMES['rlow'] = {regimes!r}`."]
+    write_json(os.path.join(args.results, "pilot_choice.json"), regimes)
+    return write_results(args, "DP pilot: the low-data regime per task", notes, table, records)
+
+
+COLUMNS = {"main": main_columns, "ablation": lambda args: [Column(label, "state", c) for label, c in ABLATION],
+           "execution": lambda args: list(EXECUTION), "thresholds": thresholds_columns, "hparams": hparams_columns}
+
+
+def protocol_tables(args: "CampaignArgs") -> list[PaperArgs]:
+    """The tables of results/PROTOCOL.md v1 with the campaign's settings: (a) main in both regimes, (c) execution in
+    both regimes, (b) ablation in Rlow on all tasks, (d) thresholds and (e) hyper-parameters in Rlow on two tasks."""
+    common = {f.name: getattr(args, f.name) for f in dataclasses.fields(PaperArgs)}
+    two = tuple(t for t in ("press_button", "latch_door") if t in args.tasks)
+    tables = []
+    for regime in args.regimes:
+        r = {**common, "regime": regime}
+        tables += [MainArgs(**r, obs_types=args.obs_types if regime == "r100" else ("state",)),
+                   ExecutionArgs(**r)]
+    if "rlow" in args.regimes:
+        r = {**common, "regime": "rlow"}
+        tables += [AblationArgs(**r), ThresholdsArgs(**{**r, "tasks": two}), HparamsArgs(**{**r, "tasks": two})]
+    return tables
+
+
+def campaign_jobs(args: "CampaignArgs", tables: list[PaperArgs]) -> tuple[list[Job], set[str]]:
+    """Every (task, column, seed, regime changes) evaluation of the tables, in ``campaign.schedule``'s order, and
+    the tasks skipped because the pilot has not chosen their Rlow yet."""
+    jobs, skipped = [], set()
+    for t in tables:
+        for col in COLUMNS[table_name(t)](t):
+            for task in t.tasks:
+                try:
+                    changes = regime_changes(t.regime, task)
+                except ValueError:
+                    skipped.add(f"{task} ({t.regime}: no pilot choice yet)")
+                    continue
+                jobs += [Job(task, col, seed, tuple(sorted(changes.items()))) for seed in column_seeds(t, col)]
+    return schedule(jobs, tuple(args.seeds)), skipped
+
+
+def write_plan(args: "CampaignArgs", costs: list[dict]) -> str:
+    """``<results>/campaign_plan.md``: what the campaign (or its shard) has left, per regime and column: evaluations, runs to train
+    and the estimated CPU-hours (the records' measured wall times × the cores their processes ran on); → its path."""
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for c in costs:
+        job = c["job"]
+        groups.setdefault((changes_text(dict(job.changes)), f"{job.col.label} ({job.col.obs_type})"), []).append(c)
+    rows, total = [], 0.0
+    for (regime, label), cs in groups.items():
+        left = [c for c in cs if not c["done"]]
+        if not left:
+            continue
+        hours = sum(c["seconds"] or 0.0 for c in left) / 3600
+        unknown = sum(c["seconds"] is None for c in left)
+        total += hours
+        rows.append([regime, label, f"{len(cs) - len(left)}/{len(cs)}", str(sum(c["trains"] for c in left)),
+                     f"{hours:.1f}" + (f" + {unknown} unmeasured" if unknown else "")])
+    done = sum(c["done"] for c in costs)
+    lines = ["# Campaign plan", "", f"Command: `{command_line(args)}`", "",
+             (f"{done} of {len(costs)} evaluations recorded; left: about **{total:.1f} CPU-hours** "
+              "(estimated from the records' measured times, preferring those that state their cores: training "
+              "seconds per step of the same network and batch, else of its observation type; evaluation seconds of "
+              "the same task and strategy)."), "",
+             markdown_table(["Regime", "Column", "Recorded", "Runs to train", "CPU-hours left"], rows)]
+    os.makedirs(args.results, exist_ok=True)
+    path = os.path.join(args.results, "campaign_plan.md")
+    with open(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+    return path
+
+
+def campaign_table(args: "CampaignArgs") -> str:
+    """Every evaluation of the protocol's tables under ONE progress bar (with its ETA), each kept in its run's record
+    as it finishes, then every table rebuilt from the records; → the path of the campaign's index."""
+    camp = campaign(args)
+    tables = protocol_tables(args)
+    jobs, skipped = campaign_jobs(args, tables)
+    k, n = args.shard
+    if not 0 <= k < n:
+        raise ValueError(f"shard: expected K N with 0 <= K < N, got {k} {n}")
+    until = parse_until(args.until)
+    def run_of(job: Job) -> str:
+        return camp.run_config(job.task, job.col, job.seed, dict(job.changes)).out_dir()
+
+    jobs = shard(jobs, k, n, run_of)
+    costs = CostModel(args.records, args.runs).estimate(camp, jobs)
+    if args.plan:
+        return write_plan(args, costs)
+    known = [c["seconds"] for c in costs if c["seconds"]]
+    guess = float(np.median(known)) if known else 1.0  # a job nothing measured yet
+    deadline = Deadline(until, cpu_cores(), guess)
+    # the bar counts estimated seconds of work (recorded jobs cost 0), so its ETA is the measured rate at which
+    # the estimate is worked off: it corrects itself as runs finish faster or slower than their records said
+    bar = tqdm(total=round(sum(guess if c["seconds"] is None else c["seconds"] for c in costs)), desc="campaign",
+               unit="s", disable=not args.progress, dynamic_ncols=True,
+               bar_format="{l_bar}{bar}| {percentage:.0f}% of the estimated work [{elapsed}<{remaining}] {postfix}")
+    for i, c in enumerate(costs):
+        task, col, seed, changes = c["job"]
+        label = f"{i + 1}/{len(costs)}: {task} seed {seed} {col.label} {changes_text(dict(changes))}"
+        bar.set_postfix_str(label)
+        if not deadline.admits(CostModel.refresh(args.records, args.runs, camp, c), run_of(c["job"])):
+            bar.update(round(guess if c["seconds"] is None else c["seconds"]))
+            estimate = "unmeasured" if c["seconds"] is None else f"{c['seconds'] / deadline.cores:.0f} s"
+            tqdm.write(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: skipped, estimated {estimate}, "
+                       f"{max(deadline.seconds_left(), 0):.0f} s left before --until {args.until}")
+            continue
+        t0 = time.perf_counter()
+        evaluation = camp.evaluate(task, col, seed, dict(changes))
+        bar.update(round(guess if c["seconds"] is None else c["seconds"]))
+        if not args.progress and not c["done"] and evaluation is not None:  # a background run's log: a line a job
+            print(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: "
+                  f"{100 * evaluation['success_rate']:.0f} % in {time.perf_counter() - t0:.0f} s", flush=True)
+    bar.close()
+    if n > 1:  # the other shards may still run: what is left, not the tables
+        return write_plan(args, CostModel(args.records, args.runs).estimate(camp, jobs))
+    paths = []
+    for t in tables:  # a regime's table holds the tasks the pilot has chosen its demos for
+        ready = tuple(task for task in t.tasks if t.regime == "r100" or task in REGIMES[t.regime])
+        if ready:
+            paths.append(BUILDERS[table_name(t)](dataclasses.replace(t, tasks=ready, from_records=True)))
+    now = CostModel(args.records, args.runs).estimate(camp, jobs)
+    left = [c for c in now if not c["done"]]
+    progress = ""
+    if left:  # an interim build (--from-records, or a campaign stopped early): say how far it got
+        plan = write_plan(args, now)
+        progress = (f"Interim: {len(jobs) - len(left)} of {len(jobs)} evaluations recorded; what is left and its "
+                    f"estimated cost: [campaign_plan.md]({{}}).")
+    lines = [f"# Campaign ({args.budget})", "", f"Command: `{command_line(args)}`", "",
+             f"{len(jobs)} evaluations; tables:", ""] + [f"- [{os.path.basename(p)}]({os.path.basename(p)})"
+                                                           for p in paths]
+    if progress:
+        lines += ["", progress.format(os.path.basename(plan))]
+    if skipped:
+        lines += ["", "Not run yet: " + ", ".join(sorted(skipped))]
+    index = os.path.join(args.results, "campaign.md")
+    with open(index, "w") as f:
+        f.write("\n".join(lines) + "\n")
+    if args.readme:
+        readme_dir = os.path.dirname(os.path.abspath(args.readme))
+        section = readme_section(paths, readme_dir)
+        if progress:
+            section = progress.format(os.path.relpath(plan, readme_dir)) + "\n\n" + section
+        if skipped:
+            section += "\n\nNot run yet: " + ", ".join(sorted(skipped)) + "."
+        if update_readme(args.readme, section):
+            print(f"updated the campaign tables in {args.readme}")
+        else:
+            print(f"{args.readme}: no campaign markers ({README_BEGIN!r} ... {README_END!r}); README left as is")
+    return index
+
+
+BUILDERS = {"main": main_table, "ablation": ablation_table, "execution": execution_table,
+            "thresholds": thresholds_table, "hparams": hparams_table, "pilot": pilot_table,
+            "campaign": campaign_table}
+
+
+
+def build(args: PaperArgs) -> str:
+    """Build the table ``args`` stands for (its runs trained / evaluated as needed); → its markdown file's path."""
+    return BUILDERS[table_name(args)](args)
