@@ -332,6 +332,15 @@ def test_campaign_records_an_evaluation_and_rebuilds_from_it(tiny, tmp_path):
     assert record["calibration"]["thresholds"] == _load(os.path.join(run, "calibration.json"))["thresholds"]
     cores = len(os.sched_getaffinity(0))  # the cost accounting: wall time x the cores the process ran on
     assert record["training"]["cpu_cores"] == evaluation["cpu_cores"] == cores
+    # the demos' size travels with the record, so the main table's "Demo steps" rebuilds without the buffer
+    from hipolicy_jax.data.replay_buffer import ReplayBuffer
+
+    buffer = ReplayBuffer.load(tables.train_args(args, TASK, "state", (), 0).data_path())
+    assert record["demos"] == {"episodes": SMOKE.demos, "frames": buffer.num_frames}
+    lengths = f"{buffer.episode_lengths().mean():.0f}"
+    no_buffer = dataclasses.replace(args, records=str(tmp_path / "records"), data=str(tmp_path / "no_data"))
+    assert tables.demo_steps(no_buffer, TASK) == tables.demo_steps(args, TASK) == lengths
+    assert tables.demo_steps(dataclasses.replace(no_buffer, records=str(tmp_path / "none")), TASK) == "–"
     same = json.dumps([evaluation], sort_keys=True)  # NaN-safe equality
     assert json.dumps(list(record["evaluations"].values()), sort_keys=True) == same
     offline = Campaign("smoke", runs=str(tmp_path / "no_runs"), records=str(tmp_path / "records"), episodes=2,

@@ -68,14 +68,15 @@ def evaluation_key(inference: InferenceConfig, col: Column, episodes: int, eval_
 
 
 def run_summary(run: Run) -> dict:
-    """What a record keeps of a trained run: configs, task, data, training summary, calibration."""
+    """What a record keeps of a trained run: configs, task, data (its path and its ``demos``: episodes and frames),
+    training summary, calibration."""
     meta = run.policy.meta
     summary_path = os.path.join(run.run_dir, "summary.json")
     summary = read_json(summary_path) if os.path.exists(summary_path) else {}
     calib = calibration.read_calibration(run.run_dir) or {}
     return {"task": run.task, "seed": run.seed, "checkpoint_step": run.policy.step, "policy": meta["policy"],
             "train": meta["train"], "data": os.path.relpath(meta.get("data", "")), "val_ratio": meta.get("val_ratio"),
-            "param_count": meta.get("param_count"),
+            "param_count": meta.get("param_count"), "demos": summary.get("demos"),
             "training": {k: summary.get(k) for k in ("steps", "final_loss", "wall_time_s", "cpu_cores")},
             "calibration": {k: calib.get(k) for k in ("thresholds", "percentiles", "num_windows", "inference")}}
 

@@ -9,6 +9,7 @@ Each table trains and evaluates through ``campaign.Campaign`` (or reads its reco
 from __future__ import annotations
 
 import dataclasses
+import glob
 import os
 import shlex
 import time
@@ -26,7 +27,7 @@ from hipolicy_jax.runs.campaign import (README_BEGIN, README_END, Campaign, Colu
                                         shard, update_readme)
 from hipolicy_jax.runs.report import (bar_figure, changes_text, ci, cost_note, markdown_table, outcomes, paired_cell,
                                       relative_gain, stride_cell, task_mean)
-from hipolicy_jax.runs.store import write_json
+from hipolicy_jax.runs.store import read_json, write_json
 from hipolicy_jax.runs.train import RunConfig, cpu_cores
 
 TaskName = Literal["press_button", "latch_door", "stack_cubes", "pick_place"]
@@ -290,9 +291,16 @@ def grouped_rows(args: PaperArgs, records, columns: list[str], metric: str = "su
 
 
 def demo_steps(args: PaperArgs, task: str, obs_types: tuple[str, ...] = ("state",)) -> str:
-    """Mean demo length (control steps) of the task's first existing demo buffer, '–' before one exists."""
+    """Mean length (control steps) of the task's demos at the budget's demo count: from the first of the task's run
+    records that holds its demos' ``episodes`` / ``frames`` (so the table rebuilds from git alone), else from the
+    task's demo buffer on this machine; '–' when neither exists yet."""
     from hipolicy_jax.data.replay_buffer import ReplayBuffer
 
+    demos = BUDGETS[args.budget].demos
+    for path in sorted(glob.glob(os.path.join(args.records, args.budget, task, "*", "*", "*.json"))):
+        d = read_json(path).get("demos")
+        if d and d.get("episodes") == demos:
+            return f"{d['frames'] / d['episodes']:.0f}"
     for obs in obs_types:
         path = train_args(args, task, obs, (), args.seeds[0]).data_path()
         if os.path.exists(path):

@@ -208,7 +208,8 @@ def _train(cfg: RunConfig, out: str) -> dict:
                "final_loss": float(np.mean(result.losses[-50:])) if result.losses else None,
                # this session's wall time + the logged step time of the sessions before a resume
                "wall_time_s": time.perf_counter() - t0 + logged_train_seconds(out, result.start_step),
-               "cpu_cores": cpu_cores(), "out": os.path.abspath(out)}
+               "cpu_cores": cpu_cores(), "out": os.path.abspath(out),
+               "demos": {"episodes": buffer.num_episodes, "frames": buffer.num_frames}}
     write_json(os.path.join(out, "summary.json"), summary)
     if final is None:
         print(f"\ntrained {summary['steps']} steps; outputs in {out}")
