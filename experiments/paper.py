@@ -13,7 +13,8 @@ Tables (sub-commands), each trained with ``hipolicy_jax.runs.train`` and evaluat
 - ``hparams``: L_h, L_c and M around the defaults (3, 8, 3).
 - ``pilot``: the protocol's DP-only pilot that picks each task's low-data regime (``--regime rlow``).
 - ``campaign``: all of the protocol's tables (results/PROTOCOL.md) — every run and evaluation under one progress
-  bar with its ETA, then every table from the records.
+  bar with its ETA, then every table from the records and ``findings.md``: each paired comparison of HiPolicy
+  with a baseline (DP, DP3, DP+TE, DP+AAC) per task and on average, with its verdict (wins / ties / loses).
 
 Budgets: ``smoke`` (tiny model, a dozen steps: checks the pipeline in a couple of minutes), ``cpu`` (CPU model,
 2000 steps: about 10 minutes of training per run on 2 cores), ``gpu`` (paper-size model, N=100, 100 DDPM steps).

@@ -282,6 +282,37 @@ def test_paper_tables_on_fake_numbers(tmp_path, monkeypatch):
     assert order == sorted(order) and "DP3+HiPolicy" in main_md
 
 
+def test_findings_gather_each_paired_comparison_with_its_verdict(tmp_path):
+    """findings.md: one row per (table, HiPolicy vs baseline) pair, a verdict per task from the tables' records,
+    '–' for a comparison without records yet (the DP3 columns here), and the tally over every (comparison, task)."""
+    from hipolicy_jax.runs.store import write_json
+
+    tasks, seeds = ("press_button", "latch_door"), (0, 1, 2)
+    common = dict(budget="smoke", tasks=tasks, seeds=seeds, results=str(tmp_path), progress=False)
+    camp = tables.CampaignArgs(**common)
+    built = [tables.MainArgs(**common, obs_types=("state", "pointcloud")), tables.ExecutionArgs(**common)]
+    assert tables.findings_table(camp, built) is None  # no table built yet
+
+    def rec(task, column, seed, success):
+        return {"task": task, "seed": seed, "column": column, "success_rate": float(success),
+                "success": [success] * 10, "steps": [50] * 10}
+
+    # main: DP+HiPolicy fails every press_button episode DP solves, and solves every latch_door one DP fails
+    main = [rec(t, c, s, (c == "DP") == (t == "press_button")) for t in tasks for c in ("DP", "DP+HiPolicy")
+            for s in seeds]
+    execution = [rec(t, c, s, True) for t in tasks for c in ("DP+TE", "DP+AAC", "HiPolicy") for s in seeds]
+    write_json(str(tmp_path / "main.json"), {"records": main})
+    write_json(str(tmp_path / "execution.json"), {"records": execution})
+    text = open(tables.findings_table(camp, built)).read()
+    rows = {line.split(" | ")[0][2:]: line for line in text.splitlines()[1:] if line.startswith("| ")}
+    assert rows["DP+HiPolicy vs DP"].split(" | ")[2:] == ["-100.0 loses", "+100.0 wins", "+0.0, p=1 (ties)",
+                                                           "1/0/1 |"]
+    assert rows["DP3+HiPolicy vs DP3"].split(" | ")[2:] == ["–", "–", "–", "0/0/0 |"]  # no DP3 record yet
+    assert rows["HiPolicy vs DP+TE"].split(" | ")[2:4] == ["+0.0 ties", "+0.0 ties"]
+    assert "HiPolicy vs DP+AAC" in rows and "HiPolicy vs DP" not in rows  # the main table's pair, counted once
+    assert "Over the 6 (comparison, task) cells: HiPolicy wins 1, ties 4, loses 1." in text
+
+
 def test_table_formatting_helpers():
     assert report.mean_std([0.5, 0.7], 100.0) == "60.0 ± 14.1"
     assert report.mean_std([0.25], 100.0) == "25.0" and report.mean_std([float("nan"), None]) == "–"
@@ -297,7 +328,7 @@ def test_table_formatting_helpers():
     assert report.ci(ep, "success_rate", (0,), ["a"], 100.0, column="new") == "50.0 [20.0, 80.0]"
     assert report.ci(ep, "success_rate", (0,), ["a", "b"], 100.0, column="new") == "–"
     assert report.ci(ep, "success_rate", (0,), ["a", "b"], 100.0, column="base") != "–"
-    assert report.paired_cell(ep, (0,), ["a"], "new", "base").startswith("+0.0 [+0.0, +0.0], p=1")
+    assert report.paired_cell(ep, (0,), ["a"], "new", "base").startswith("+0.0, p=1")
     assert report.paired_cell(ep, (0,), ["a", "b"], "new", "base") == "–"
 
 

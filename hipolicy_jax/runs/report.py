@@ -6,6 +6,8 @@ builds the paper's tables with them.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from hipolicy_jax.evaluation import stats
@@ -64,14 +66,16 @@ def outcomes(records: list[dict], metric: str, seeds, **match) -> dict[int, np.n
     return out
 
 
-def interval_text(iv: stats.Interval, scale: float = 1.0, digits: int = 1) -> str:
-    """'m [lo, hi]' (a 95 % bootstrap interval), 'm' when it has no width, '–' when undefined."""
+def interval_text(iv: stats.Interval, scale: float = 1.0, digits: int = 1, signed: bool = False) -> str:
+    """'m [lo, hi]' (a 95 % bootstrap interval; '+m [+lo, +hi]' with ``signed``, for differences), 'm' when it has
+    no width, '–' when undefined."""
     if not np.isfinite(iv.mean):
         return "–"
     m, lo, hi = (x * scale for x in iv)
+    fmt = f"{'+' if signed else ''}.{digits}f"
     if lo == hi:
-        return f"{m:.{digits}f}"
-    return f"{m:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+        return f"{m:{fmt}}"
+    return f"{m:{fmt}} [{lo:{fmt}}, {hi:{fmt}}]"
 
 
 def ci(records: list[dict], metric: str, seeds, tasks, scale: float = 1.0, **match) -> str:
@@ -83,9 +87,16 @@ def ci(records: list[dict], metric: str, seeds, tasks, scale: float = 1.0, **mat
     return interval_text(iv, scale)
 
 
-def paired_cell(records: list[dict], seeds, tasks, new: str, base: str) -> str:
-    """``new`` − ``base`` success in points on the shared initial states: 'Δ [lo, hi], p=… (wins / ties / loses)'
-    with the hierarchical bootstrap interval and the exact McNemar test, pooled over ``tasks``."""
+class Paired(NamedTuple):
+    """A paired comparison of two columns' success on the shared initial states."""
+
+    diff: stats.Interval  # new − base success (a fraction), its hierarchical bootstrap 95 % interval
+    p: float  # the exact McNemar test's two-sided p
+
+
+def paired(records: list[dict], seeds, tasks, new: str, base: str) -> Paired | None:
+    """``new`` − ``base`` success pooled over ``tasks`` (each task's seeds both columns have, episode by episode);
+    None while a task has no pair."""
     a = [outcomes(records, "success_rate", seeds, task=t, column=new) for t in tasks]
     b = [outcomes(records, "success_rate", seeds, task=t, column=base) for t in tasks]
     diffs = []
@@ -94,12 +105,21 @@ def paired_cell(records: list[dict], seeds, tasks, new: str, base: str) -> str:
         if shared and all(x[s].size == y[s].size > 1 for s in shared):
             diffs.append({s: x[s] - y[s] for s in shared})
     if len(diffs) < len(tasks):  # a task without a pair: no pooled comparison over these tasks yet
-        return "–"
+        return None
     iv = stats.bootstrap_mean(diffs[0]) if len(diffs) == 1 else stats.bootstrap_average(diffs)
     pooled_a = {(i, s): v for i, x in enumerate(a) for s, v in x.items()}
     pooled_b = {(i, s): v for i, y in enumerate(b) for s, v in y.items()}
     _, _, p = stats.mcnemar_exact({k: v > 0 for k, v in pooled_a.items()}, {k: v > 0 for k, v in pooled_b.items()})
-    return f"{iv.mean * 100:+.1f} [{iv.low * 100:+.1f}, {iv.high * 100:+.1f}], p={p:.2g} ({stats.verdict(iv)})"
+    return Paired(iv, p)
+
+
+def paired_cell(records: list[dict], seeds, tasks, new: str, base: str) -> str:
+    """``new`` − ``base`` success in points on the shared initial states: 'Δ [lo, hi], p=… (wins / ties / loses)'
+    with the hierarchical bootstrap interval and the exact McNemar test, pooled over ``tasks``; '–' without a pair."""
+    c = paired(records, seeds, tasks, new, base)
+    if c is None:
+        return "–"
+    return f"{interval_text(c.diff, 100.0, signed=True)}, p={c.p:.2g} ({stats.verdict(c.diff)})"
 
 
 def cost_note(records: list[dict]) -> str:

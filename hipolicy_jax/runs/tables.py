@@ -25,8 +25,8 @@ from hipolicy_jax.runs.budgets import BUDGETS, DP, REGIMES, regime_changes, run_
 from hipolicy_jax.runs.campaign import (README_BEGIN, README_END, Campaign, Column, CostModel, Deadline, Job,
                                         choose_low_regime, parse_until, pilot_candidates, readme_section, schedule,
                                         shard, update_readme)
-from hipolicy_jax.runs.report import (bar_figure, changes_text, ci, cost_note, markdown_table, outcomes, paired_cell,
-                                      relative_gain, stride_cell, task_mean)
+from hipolicy_jax.runs.report import (bar_figure, changes_text, ci, cost_note, interval_text, markdown_table, outcomes,
+                                      paired, paired_cell, relative_gain, stride_cell, task_mean)
 from hipolicy_jax.runs.store import read_json, write_json
 from hipolicy_jax.runs.train import RunConfig, cpu_cores
 
@@ -234,10 +234,15 @@ def results_header(title: str, args: PaperArgs, notes: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def results_name(args: PaperArgs) -> str:
+    """The table's file name without extension: ``main``, ``main_rlow``, ..."""
+    return table_name(args) + ("" if args.regime == "r100" else f"_{args.regime}")
+
+
 def write_results(args: PaperArgs, title: str, notes: list[str], table: str, records: list[dict],
                   figure=None) -> str:
     """Write ``<results>/<table>[_rlow].md`` (+ ``.json`` with every record, + ``.png`` from ``figure(path)``)."""
-    name = table_name(args) + ("" if args.regime == "r100" else f"_{args.regime}")
+    name = results_name(args)
     os.makedirs(args.results, exist_ok=True)
     md = os.path.join(args.results, f"{name}.md")
     with open(md, "w") as f:
@@ -608,6 +613,62 @@ def write_plan(args: "CampaignArgs", costs: list[dict]) -> str:
     return path
 
 
+# The paired comparisons of HiPolicy with a baseline that the findings gather: (table, new column, baseline column)
+# (the execution table's HiPolicy vs DP and the ablation's Hier. vs w/o Hier. are the main table's runs and
+# evaluations again, so they are not counted twice)
+FINDINGS = (("main", "DP+HiPolicy", "DP"), ("main", "DP3+HiPolicy", "DP3"), ("execution", "HiPolicy", "DP+TE"),
+            ("execution", "HiPolicy", "DP+AAC"))
+VERDICTS = ("wins", "ties", "loses")
+
+
+def findings_table(args: "CampaignArgs", tables: list[PaperArgs]) -> str | None:
+    """``<results>/findings.md``: every paired comparison of ``FINDINGS`` in the built tables, one row each — per
+    task the success difference in points on the shared initial states with its 95 % interval and verdict, the
+    average over the table's tasks with its McNemar p, and the tasks won / tied / lost — read from the tables' JSON
+    (their records); → its path, None before any table holds a comparison."""
+    rows, tally = [], dict.fromkeys(VERDICTS, 0)
+    for t in tables:
+        path = os.path.join(args.results, results_name(t) + ".json")
+        if not os.path.exists(path):
+            continue
+        records = read_json(path)["records"]
+        labels, seeds = {c.label for c in COLUMNS[table_name(t)](t)}, table_seeds(t)
+        for name, new, base in FINDINGS:
+            if name != table_name(t) or not {new, base} <= labels:  # (DP3 columns: in R100's main table only)
+                continue
+            cells, counts = [], dict.fromkeys(VERDICTS, 0)
+            for task in args.tasks:
+                c = paired(records, seeds, [task], new, base) if task in t.tasks else None
+                if c is None:
+                    cells.append("–")
+                    continue
+                verdict = stats.verdict(c.diff)
+                counts[verdict] += 1
+                cells.append(f"{interval_text(c.diff, 100.0, signed=True)} {verdict}")
+            for v in VERDICTS:
+                tally[v] += counts[v]
+            regime = "100 demos" if t.regime == "r100" else "Rlow"
+            rows.append([f"{new} vs {base}", f"{regime} ({results_name(t)})", *cells,
+                         paired_cell(records, seeds, list(t.tasks), new, base),
+                         "/".join(str(counts[v]) for v in VERDICTS)])
+    if not rows:
+        return None
+    table = markdown_table(["Comparison", "Demos (table)", *args.tasks, "Average", "Tasks W/T/L"], rows)
+    total = sum(tally.values())
+    lines = ["# Findings: where HiPolicy wins, ties or loses", "",
+             "Each row is a paired comparison from one table: per task, the success difference (new − baseline) in "
+             "points on the shared initial states with its 95 % hierarchical bootstrap interval over seeds × "
+             "episodes; **wins** / **loses** when the interval excludes 0, else **ties**. Average: the table's tasks "
+             "pooled, with the exact McNemar p. '–': a task the comparison has no pair for yet (see "
+             "campaign_plan.md).", "",
+             f"Over the {total} (comparison, task) cells: HiPolicy wins {tally['wins']}, ties {tally['ties']}, loses "
+             f"{tally['loses']}.", "", table]
+    out = os.path.join(args.results, "findings.md")
+    with open(out, "w") as f:
+        f.write("\n".join(lines) + "\n")
+    return out
+
+
 def campaign_table(args: "CampaignArgs") -> str:
     """Every evaluation of the protocol's tables under ONE progress bar (with its ETA), each kept in its run's record
     as it finishes, then every table rebuilt from the records; → the path of the campaign's index."""
@@ -652,11 +713,15 @@ def campaign_table(args: "CampaignArgs") -> str:
     bar.close()
     if n > 1:  # the other shards may still run: what is left, not the tables
         return write_plan(args, CostModel(args.records, args.runs).estimate(camp, jobs))
-    paths = []
+    paths, built = [], []
     for t in tables:  # a regime's table holds the tasks the pilot has chosen its demos for
         ready = tuple(task for task in t.tasks if t.regime == "r100" or task in REGIMES[t.regime])
         if ready:
-            paths.append(BUILDERS[table_name(t)](dataclasses.replace(t, tasks=ready, from_records=True)))
+            built.append(dataclasses.replace(t, tasks=ready, from_records=True))
+            paths.append(BUILDERS[table_name(t)](built[-1]))
+    findings = findings_table(args, built)
+    if findings is not None:
+        paths.insert(0, findings)
     now = CostModel(args.records, args.runs).estimate(camp, jobs)
     left = [c for c in now if not c["done"]]
     progress = ""
