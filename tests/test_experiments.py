@@ -310,7 +310,21 @@ def test_findings_gather_each_paired_comparison_with_its_verdict(tmp_path):
     assert rows["DP3+HiPolicy vs DP3"].split(" | ")[2:] == ["–", "–", "–", "0/0/0 |"]  # no DP3 record yet
     assert rows["HiPolicy vs DP+TE"].split(" | ")[2:4] == ["+0.0 ties", "+0.0 ties"]
     assert "HiPolicy vs DP+AAC" in rows and "HiPolicy vs DP" not in rows  # the main table's pair, counted once
-    assert "Over the 6 (comparison, task) cells: HiPolicy wins 1, ties 4, loses 1." in text
+    assert "Over the 6 (comparison, task) cells: HiPolicy wins 1, ties 4, loses 1 (0 of the wins and losses marked †)." in text
+
+
+def test_verdict_is_marked_fragile_when_mcnemar_does_not_back_it():
+    """The protocol's verdict (interval excludes 0) stands; a win or loss with McNemar p >= 0.05 is marked."""
+    from hipolicy_jax.evaluation.stats import Interval
+
+    assert report.verdict_text(report.Paired(Interval(0.013, 0.003, 0.03), 0.125)) == "wins†"
+    assert report.verdict_text(report.Paired(Interval(0.013, 0.003, 0.03), 0.01)) == "wins"
+    assert report.verdict_text(report.Paired(Interval(-0.2, -0.3, -0.1), 0.05)) == "loses†"
+    assert report.verdict_text(report.Paired(Interval(0.0, -0.1, 0.1), 0.9)) == "ties"
+    # 4 seeds × 100 episodes, the new column succeeding once more per seed: the bootstrap excludes 0, p = 0.125
+    ep = [{"task": "a", "seed": s, "column": c, "success_rate": 0.5,
+           "success": [True] * 50 + [c == "new"] + [False] * 49} for s in range(4) for c in ("new", "base")]
+    assert report.paired_cell(ep, range(4), ["a"], "new", "base") == "+1.0 [+0.2, +2.0], p=0.12 (wins†)"
 
 
 def test_table_formatting_helpers():

@@ -113,13 +113,28 @@ def paired(records: list[dict], seeds, tasks, new: str, base: str) -> Paired | N
     return Paired(iv, p)
 
 
+# A verdict (interval excluding 0) that the exact McNemar test does not back at this level is marked FRAGILE: with
+# few discordant episodes, all one way, the percentile bootstrap's interval can exclude 0 while p is large.
+MCNEMAR_ALPHA = 0.05
+FRAGILE = "†"
+FRAGILE_NOTE = (f"{FRAGILE}: the interval excludes 0 but the exact McNemar p ≥ {MCNEMAR_ALPHA:g} (few discordant "
+                "episodes); the protocol's verdict stands, read it as weak.")
+
+
+def verdict_text(c: Paired) -> str:
+    """The protocol's verdict of a paired comparison ('wins' / 'ties' / 'loses'), marked FRAGILE when McNemar's p
+    does not back it."""
+    v = stats.verdict(c.diff)
+    return v + FRAGILE if v in ("wins", "loses") and c.p >= MCNEMAR_ALPHA else v
+
+
 def paired_cell(records: list[dict], seeds, tasks, new: str, base: str) -> str:
     """``new`` − ``base`` success in points on the shared initial states: 'Δ [lo, hi], p=… (wins / ties / loses)'
     with the hierarchical bootstrap interval and the exact McNemar test, pooled over ``tasks``; '–' without a pair."""
     c = paired(records, seeds, tasks, new, base)
     if c is None:
         return "–"
-    return f"{interval_text(c.diff, 100.0, signed=True)}, p={c.p:.2g} ({stats.verdict(c.diff)})"
+    return f"{interval_text(c.diff, 100.0, signed=True)}, p={c.p:.2g} ({verdict_text(c)})"
 
 
 def cost_note(records: list[dict]) -> str:

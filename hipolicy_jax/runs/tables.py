@@ -25,8 +25,9 @@ from hipolicy_jax.runs.budgets import BUDGETS, DP, REGIMES, regime_changes, run_
 from hipolicy_jax.runs.campaign import (README_BEGIN, README_END, Campaign, Column, CostModel, Deadline, Job,
                                         choose_low_regime, parse_until, pilot_candidates, readme_section, schedule,
                                         shard, update_readme)
-from hipolicy_jax.runs.report import (bar_figure, changes_text, ci, cost_note, interval_text, markdown_table, outcomes,
-                                      paired, paired_cell, relative_gain, stride_cell, task_mean)
+from hipolicy_jax.runs.report import (FRAGILE, FRAGILE_NOTE, bar_figure, changes_text, ci, cost_note, interval_text,
+                                      markdown_table, outcomes, paired, paired_cell, relative_gain, stride_cell,
+                                      task_mean, verdict_text)
 from hipolicy_jax.runs.store import read_json, write_json
 from hipolicy_jax.runs.train import RunConfig, cpu_cores
 
@@ -324,6 +325,10 @@ def main_columns(args: MainArgs) -> list[Column]:
     return columns
 
 
+PAIRED_NOTE = ("Paired columns: the per-episode success difference on the shared initial states (seeds both columns "
+               "have), its 95 % bootstrap interval and the exact McNemar p; wins / loses when the interval excludes 0.")
+
+
 def main_table(args: MainArgs) -> str:
     columns = main_columns(args)
     obs_types = args.resolved_obs_types()
@@ -337,8 +342,7 @@ def main_table(args: MainArgs) -> str:
                            rows)
     notes = ["Success rate (%) with entropy-guided execution, thresholds calibrated on held-out demos "
              "(10th / 70th percentiles); relative gain over the baseline in the average rows.",
-             "Paired columns: the per-episode success difference on the shared initial states (seeds both columns "
-             "have), its 95 % bootstrap interval and the exact McNemar p; wins / loses when the interval excludes 0.",
+             PAIRED_NOTE, FRAGILE_NOTE,
              "DP = one stride (single-frequency Diffusion Policy); DP3 = point-cloud encoder, sample prediction."]
     if "pointcloud" in obs_types:
         pc = train_args(args, args.tasks[0], "pointcloud", (), args.seeds[0]).policy.encoder
@@ -362,7 +366,7 @@ def ablation_table(args: AblationArgs) -> str:
     table = markdown_table(["Task", *labels, "Hier. − w/o Hier. (points)"], rows)
     notes = ["Success rate (%) with entropy-guided execution. Condition: every frequency segment conditioned on its "
              "own frequency's observations (Hier.), or all on the lowest (Low) / highest (High); w/o Fusion: no "
-             "CLS-token attention; w/o Hier.: one stride (DP)."]
+             "CLS-token attention; w/o Hier.: one stride (DP).", PAIRED_NOTE, FRAGILE_NOTE]
 
     figure = success_by_task_figure(args, records, labels, "ablation")
     return write_results(args, "Ablation: success rate (%)", notes, table, records, figure)
@@ -402,7 +406,7 @@ def execution_table(args: ExecutionArgs) -> str:
              "ensembling (a decision at every step, weights exp(-0.01 i)); DP+AAC: the same DP run with adaptive "
              "action chunking (k of L_c actions, k from the entropy curve of the N samples); w/o EG: the HiPolicy "
              "run always at stride 1; HiPolicy: entropy-guided execution with the calibrated thresholds.",
-             "Strides: share of HiPolicy's decisions executed at stride 1/2/3."]
+             "Strides: share of HiPolicy's decisions executed at stride 1/2/3.", PAIRED_NOTE, FRAGILE_NOTE]
 
     def figure(path):
         import matplotlib
@@ -626,7 +630,7 @@ def findings_table(args: "CampaignArgs", tables: list[PaperArgs]) -> str | None:
     task the success difference in points on the shared initial states with its 95 % interval and verdict, the
     average over the table's tasks with its McNemar p, and the tasks won / tied / lost — read from the tables' JSON
     (their records); → its path, None before any table holds a comparison."""
-    rows, tally = [], dict.fromkeys(VERDICTS, 0)
+    rows, tally, fragile = [], dict.fromkeys(VERDICTS, 0), 0
     for t in tables:
         path = os.path.join(args.results, results_name(t) + ".json")
         if not os.path.exists(path):
@@ -644,7 +648,8 @@ def findings_table(args: "CampaignArgs", tables: list[PaperArgs]) -> str | None:
                     continue
                 verdict = stats.verdict(c.diff)
                 counts[verdict] += 1
-                cells.append(f"{interval_text(c.diff, 100.0, signed=True)} {verdict}")
+                fragile += verdict_text(c).endswith(FRAGILE)
+                cells.append(f"{interval_text(c.diff, 100.0, signed=True)} {verdict_text(c)}")
             for v in VERDICTS:
                 tally[v] += counts[v]
             regime = "100 demos" if t.regime == "r100" else "Rlow"
@@ -662,7 +667,7 @@ def findings_table(args: "CampaignArgs", tables: list[PaperArgs]) -> str | None:
              "pooled, with the exact McNemar p. '–': a task the comparison has no pair for yet (see "
              "campaign_plan.md).", "",
              f"Over the {total} (comparison, task) cells: HiPolicy wins {tally['wins']}, ties {tally['ties']}, loses "
-             f"{tally['loses']}.", "", table]
+             f"{tally['loses']} ({fragile} of the wins and losses marked {FRAGILE}).", "", FRAGILE_NOTE, "", table]
     out = os.path.join(args.results, "findings.md")
     with open(out, "w") as f:
         f.write("\n".join(lines) + "\n")
