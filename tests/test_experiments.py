@@ -28,6 +28,7 @@ from hipolicy_jax.runs.campaign import (Campaign, Column, CostModel, Deadline, J
                                         pilot_candidates, schedule, shard)
 from hipolicy_jax.runs import report, tables
 from hipolicy_jax.runs.cli import parse_with_run_inference
+from hipolicy_jax.runs.lock import CAMPAIGN_LOCK_FILE, RunLock
 from hipolicy_jax.runs.store import load_run, make_evaluator
 from hipolicy_jax.runs.train import train
 
@@ -623,6 +624,39 @@ def test_campaign_until_skips_what_does_not_fit(tmp_path, capsys):
     assert not (tmp_path / "runs").exists() and "0 of" in Path(plan).read_text()
     with pytest.raises(ValueError, match="until: expected HH:MM"):
         tables.campaign_table(dataclasses.replace(args, until="later"))
+
+
+def test_campaign_skips_the_runs_another_campaign_process_works_on(tmp_path, capsys):
+    """Two campaign processes never work on one run: a run whose campaign lock a live process holds is skipped with
+    a line naming its pid, nothing of it is trained, and the campaign goes on (here: writes its plan)."""
+    args = paper.parse_args(["campaign", "--budget", "smoke", "--tasks", "press_button", "--regimes", "r100",
+                             "--obs-types", "state", "--runs", str(tmp_path / "runs"), "--records",
+                             str(tmp_path / "records"), "--results", str(tmp_path / "results"), "--data",
+                             str(tmp_path / "data"), "--no-progress", "--shard", "1", "2"])
+    camp = tables.campaign(args)
+    jobs, _ = tables.campaign_jobs(args, tables.protocol_tables(args))
+    mine = shard(jobs, 1, 2, lambda j: camp.run_config(j.task, j.col, j.seed, dict(j.changes)).out_dir())
+    dirs = {camp.run_config(j.task, j.col, j.seed, dict(j.changes)).out_dir() for j in mine}
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+    try:
+        for d in dirs:
+            os.makedirs(d)
+            Path(d, CAMPAIGN_LOCK_FILE).write_text(json.dumps({"pid": sleeper.pid, "host": os.uname().nodename,
+                                                               "started": "2026-12-04T20:28:09"}))
+        plan = tables.campaign_table(args)
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("[campaign]")]
+    assert len(lines) == len(mine) and all(
+        f"skipped, {tmp_path}/runs/" in line and f"is in use by another campaign process (pid {sleeper.pid} on " in line
+        and line.endswith("; another shard is training or evaluating it; this one leaves it to that one")
+        for line in lines)
+    assert not any(f.name == "summary.json" for d in dirs for f in Path(d).iterdir())
+    assert f"0 of {len(mine)} evaluations recorded" in Path(plan).read_text()
+    with RunLock(sorted(dirs)[0], CAMPAIGN_LOCK_FILE):  # its owner gone (kill -9): the next process takes it over
+        pass
+    assert not Path(sorted(dirs)[0], CAMPAIGN_LOCK_FILE).exists()
 
 
 def test_readme_section_from_table_files(tmp_path):

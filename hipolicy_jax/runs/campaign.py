@@ -31,8 +31,9 @@ from hipolicy_jax.evaluation import calibration
 from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
 from hipolicy_jax.runs.budgets import BUDGETS, run_config
 from hipolicy_jax.runs.calibrate import run_entropies
+from hipolicy_jax.runs.lock import CAMPAIGN_LOCK_FILE, RunLock
 from hipolicy_jax.runs.store import Run, eval_key, make_evaluator, read_json, write_json
-from hipolicy_jax.runs.train import RunConfig, cpu_cores, ensure_trained, finished
+from hipolicy_jax.runs.train import RunConfig, cpu_cores, ensure_trained, finished, prepare_out_dir
 
 RECORD_VERSION = 1
 
@@ -136,35 +137,40 @@ class Campaign:
         None when ``from_records`` and the record lacks it."""
         cfg = self.run_config(task, col, seed, run_changes)
         path = record_path(self.records, self.runs, cfg)
-        record = read_json(path) if os.path.exists(path) else {}
         inference, key = self._key(col, seed)
-        if key in record.get("evaluations", {}):
-            return record["evaluations"][key]
-        if self.from_records:
-            return None
-        run = ensure_trained(cfg)
-        ev = self._evaluator(run, inference)
-        thresholds = self._thresholds(run, col, ev)
-        thresholds_json = None if thresholds is None else jsonio.loads(jsonio.dumps([float(t) for t in thresholds]))
-        same = _same_evaluation(record.get("evaluations", {}), json.loads(key), thresholds_json)
-        if same is not None:  # the same inputs were evaluated under another column's settings (percentiles)
-            evaluation = {**record["evaluations"][same], "settings": json.loads(key), "same_as": json.loads(same),
-                          "eval_s": 0.0}
-        else:
-            t0 = time.perf_counter()
-            result = ev.evaluate(run.policy.params, run.policy.normalizer, self.episodes, eval_key(seed), thresholds,
-                                 entropy_guided=col.guided)
-            valid = np.asarray(result.valid)
-            evaluation = {"settings": json.loads(key), **eval_summary(result), "thresholds": thresholds_json,
-                          "success": [bool(x) for x in np.asarray(result.success)],
-                          "steps": [int(x) for x in np.asarray(result.steps)],
-                          "decisions": [int(x) for x in valid.sum(axis=1)], "eval_s": time.perf_counter() - t0,
-                          "cpu_cores": cpu_cores()}
-        evaluation = jsonio.loads(jsonio.dumps(evaluation))  # as records hold it (NaN: None), fresh or reread
-        record = {"version": RECORD_VERSION, "budget": self.budget, "run_dir": os.path.relpath(run.run_dir),
-                  **run_summary(run), "evaluations": {**record.get("evaluations", {}), key: evaluation}}
-        write_json(path, record)
-        return evaluation
+        record = read_json(path) if os.path.exists(path) else {}
+        if key in record.get("evaluations", {}) or self.from_records:
+            return record.get("evaluations", {}).get(key)
+        # one campaign process works on a run at a time (another shard's: RunLockedError, the caller skips it)
+        with RunLock(prepare_out_dir(cfg.out_dir()), CAMPAIGN_LOCK_FILE, "campaign process",
+                     "another shard is training or evaluating it; this one leaves it to that one"):
+            record = read_json(path) if os.path.exists(path) else {}  # that shard may have just recorded it
+            if key in record.get("evaluations", {}):
+                return record["evaluations"][key]
+            run = ensure_trained(cfg)
+            ev = self._evaluator(run, inference)
+            thresholds = self._thresholds(run, col, ev)
+            thresholds_json = (None if thresholds is None
+                               else jsonio.loads(jsonio.dumps([float(t) for t in thresholds])))
+            same = _same_evaluation(record.get("evaluations", {}), json.loads(key), thresholds_json)
+            if same is not None:  # the same inputs were evaluated under another column's settings (percentiles)
+                evaluation = {**record["evaluations"][same], "settings": json.loads(key),
+                              "same_as": json.loads(same), "eval_s": 0.0}
+            else:
+                t0 = time.perf_counter()
+                result = ev.evaluate(run.policy.params, run.policy.normalizer, self.episodes, eval_key(seed),
+                                     thresholds, entropy_guided=col.guided)
+                valid = np.asarray(result.valid)
+                evaluation = {"settings": json.loads(key), **eval_summary(result), "thresholds": thresholds_json,
+                              "success": [bool(x) for x in np.asarray(result.success)],
+                              "steps": [int(x) for x in np.asarray(result.steps)],
+                              "decisions": [int(x) for x in valid.sum(axis=1)], "eval_s": time.perf_counter() - t0,
+                              "cpu_cores": cpu_cores()}
+            evaluation = jsonio.loads(jsonio.dumps(evaluation))  # as records hold it (NaN: None), fresh or reread
+            record = {"version": RECORD_VERSION, "budget": self.budget, "run_dir": os.path.relpath(run.run_dir),
+                      **run_summary(run), "evaluations": {**record.get("evaluations", {}), key: evaluation}}
+            write_json(path, record)
+            return evaluation
 
 
 def _same_evaluation(evaluations: dict[str, dict], settings: dict, thresholds: list | None) -> str | None:

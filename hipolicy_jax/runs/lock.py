@@ -1,8 +1,10 @@
 """One owner per run directory: ``RunLock`` holds ``<run>/.lock`` (pid, host, start time) while a training runs.
 
-A second training on the same directory refuses with the owner's pid and host. A lock whose owner is gone — the
-same host and no live process with that pid (a run killed with ``kill -9``) — is reported and taken over. A lock
-from another host cannot be checked from here; it is refused, naming the file to delete if that run is gone.
+A second training on the same directory refuses with the owner's pid and host. Another activity takes its own file
+(a campaign's work on the run — training, evaluating, writing its record — holds ``<run>/.campaign.lock``, so two
+campaign processes never work on one run). A lock whose owner is gone — the same host and no live process with that
+pid (a run killed with ``kill -9``) — is reported and taken over. A lock from another host cannot be checked from
+here; it is refused, naming the file to delete if that run is gone.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import socket
 import time
 
 LOCK_FILE = ".lock"
+CAMPAIGN_LOCK_FILE = ".campaign.lock"
 
 
 class RunLockedError(RuntimeError):
@@ -30,10 +33,13 @@ def _alive(pid: int) -> bool:
 
 
 class RunLock:
-    """Context manager owning ``<directory>/.lock`` for this process; released on exit (also on errors)."""
+    """Context manager owning ``<directory>/<name>`` for this process; released on exit (also on errors).
+    ``activity`` and ``remedy`` word the refusal: "<dir> is in use by another <activity> (...); <remedy>"."""
 
-    def __init__(self, directory: str):
-        self.path = os.path.join(directory, LOCK_FILE)
+    def __init__(self, directory: str, name: str = LOCK_FILE, activity: str = "training",
+                 remedy: str = "wait for it or pass another --out"):
+        self.path = os.path.join(directory, name)
+        self.activity, self.remedy = activity, remedy
         self.owner = {"pid": os.getpid(), "host": socket.gethostname()}
 
     def _create(self) -> bool:
@@ -59,11 +65,11 @@ class RunLock:
             held = self._read()
             pid, host = held.get("pid"), held.get("host")
             if host == self.owner["host"] and isinstance(pid, int) and pid != os.getpid() and _alive(pid):
-                raise RunLockedError(f"{os.path.dirname(self.path)} is in use by another training (pid {pid} on "
-                                     f"{host}, since {held.get('started', '?')}); wait for it or pass another --out")
+                raise RunLockedError(f"{os.path.dirname(self.path)} is in use by another {self.activity} (pid "
+                                     f"{pid} on {host}, since {held.get('started', '?')}); {self.remedy}")
             if host not in (None, self.owner["host"]):
-                raise RunLockedError(f"{os.path.dirname(self.path)} is in use by a training on host {host} (pid "
-                                     f"{pid}); if that run is gone, delete {self.path}")
+                raise RunLockedError(f"{os.path.dirname(self.path)} is in use by a {self.activity} on host {host} "
+                                     f"(pid {pid}); if that run is gone, delete {self.path}")
             print(f"[lock] taking over {self.path}: its owner (pid {pid} on {host}) is gone", flush=True)
             try:
                 os.remove(self.path)
@@ -85,4 +91,4 @@ class RunLock:
         self.release()
 
 
-__all__ = ["LOCK_FILE", "RunLock", "RunLockedError"]
+__all__ = ["CAMPAIGN_LOCK_FILE", "LOCK_FILE", "RunLock", "RunLockedError"]

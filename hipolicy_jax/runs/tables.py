@@ -25,6 +25,7 @@ from hipolicy_jax.runs.budgets import BUDGETS, DP, REGIMES, regime_changes, run_
 from hipolicy_jax.runs.campaign import (README_BEGIN, README_END, Campaign, Column, CostModel, Deadline, Job,
                                         choose_low_regime, parse_until, pilot_candidates, readme_section, schedule,
                                         shard, update_readme)
+from hipolicy_jax.runs.lock import RunLockedError
 from hipolicy_jax.runs.report import (FRAGILE, FRAGILE_NOTE, bar_figure, changes_text, ci, cost_note, interval_text,
                                       markdown_table, outcomes, paired, paired_cell, relative_gain, stride_cell,
                                       task_mean, verdict_text)
@@ -710,7 +711,12 @@ def campaign_table(args: "CampaignArgs") -> str:
                        f"{max(deadline.seconds_left(), 0):.0f} s left before --until {args.until}")
             continue
         t0 = time.perf_counter()
-        evaluation = camp.evaluate(task, col, seed, dict(changes))
+        try:
+            evaluation = camp.evaluate(task, col, seed, dict(changes))
+        except RunLockedError as e:  # another campaign process (a shard started over it) works on this run
+            bar.update(round(guess if c["seconds"] is None else c["seconds"]))
+            tqdm.write(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: skipped, {e}")
+            continue
         bar.update(round(guess if c["seconds"] is None else c["seconds"]))
         if not args.progress and not c["done"] and evaluation is not None:  # a background run's log: a line a job
             print(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: "
