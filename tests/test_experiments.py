@@ -626,6 +626,26 @@ def test_campaign_until_skips_what_does_not_fit(tmp_path, capsys):
         tables.campaign_table(dataclasses.replace(args, until="later"))
 
 
+def test_campaign_no_tables_leaves_the_tables_and_readme_alone(tmp_path):
+    """A campaign narrowed to force a few runs (--tasks / --seeds, no shard) ends by rebuilding the tables and the
+    README section for its subset; with --no-tables it writes only its plan of what is left."""
+    from hipolicy_jax.runs.campaign import README_BEGIN, README_END
+
+    readme = tmp_path / "README.md"
+    readme.write_text(f"intro\n{README_BEGIN}\nthe full tables\n{README_END}\n")
+    argv = ["campaign", "--budget", "smoke", "--tasks", "press_button", "--seeds", "0", "--regimes", "r100",
+            "--obs-types", "state", "--runs", str(tmp_path / "runs"), "--records", str(tmp_path / "records"),
+            "--data", str(tmp_path / "data"), "--no-progress", "--until", "2000-01-01 00:00", "--readme", str(readme)]
+    args = paper.parse_args(argv + ["--results", str(tmp_path / "kept"), "--no-tables"])
+    assert not args.tables and "--no-tables" in tables.command_line(args)
+    plan = tables.campaign_table(args)
+    assert sorted(p.name for p in (tmp_path / "kept").iterdir()) == ["campaign_plan.md"]
+    assert "0 of" in Path(plan).read_text() and "the full tables" in readme.read_text()
+    built = tables.campaign_table(paper.parse_args(argv + ["--results", str(tmp_path / "built")]))
+    assert Path(built).name == "campaign.md" and (tmp_path / "built" / "main.md").exists()
+    assert "the full tables" not in readme.read_text()
+
+
 def test_campaign_skips_the_runs_another_campaign_process_works_on(tmp_path, capsys):
     """Two campaign processes never work on one run: a run whose campaign lock a live process holds is skipped with
     a line naming its pid, nothing of it is trained, and the campaign goes on (here: writes its plan)."""

@@ -95,6 +95,9 @@ class CampaignArgs(PaperArgs):
     # HH:MM or YYYY-MM-DD HH:MM (local time): start only the jobs whose estimated time ends before it, skip the rest
     # (a scheduler's time limit, a session's end); '' = no limit
     until: str = ""
+    # end by rebuilding every table and the README section from the records; --no-tables writes only the plan of
+    # what is left, so that a campaign narrowed to force a few runs (--tasks / --seeds) leaves the full tables alone
+    tables: bool = True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -722,7 +725,7 @@ def campaign_table(args: "CampaignArgs") -> str:
             print(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: "
                   f"{100 * evaluation['success_rate']:.0f} % in {time.perf_counter() - t0:.0f} s", flush=True)
     bar.close()
-    if n > 1:  # the other shards may still run: what is left, not the tables
+    if n > 1 or not args.tables:  # the other shards may still run (or tables not asked for): what is left
         return write_plan(args, CostModel(args.records, args.runs).estimate(camp, jobs))
     paths, built = [], []
     for t in tables:  # a regime's table holds the tasks the pilot has chosen its demos for
