@@ -547,6 +547,10 @@ def test_campaign_shards_split_runs_and_the_plan_estimates_from_records(tmp_path
     # other jobs (1000 CPU-s a step), and the record that says its cores wins
     write_record("dp_t20", {"steps": 10, "wall_time_s": 5000.0})
     model = CostModel(str(tmp_path / "records"), str(tmp_path / "runs"))
+    # what was spent: each record's training (wall × its cores, 2 when unstated) and evaluations once
+    assert model.spent("smoke") == {"train_s": 100.0 * 1 + 5000.0 * 2, "runs": 2, "eval_s": 2 * 5.0 * 2,
+                                    "evaluations": 2}
+    assert model.spent("cpu") == {"train_s": 0.0, "runs": 0, "eval_s": 0.0, "evaluations": 0}
     todo = [Job("press_button", dp, 0), Job("press_button", dp, 1), Job("press_button", te, 1),
             Job("press_button", Column("w/o Hier.", changes=DP), 1), Job("stack_cubes", hip, 0),
             Job("stack_cubes", dp3, 0), Job("stack_cubes", dp, 0, (("train.num_steps", 40),))]
@@ -643,6 +647,8 @@ def test_campaign_no_tables_leaves_the_tables_and_readme_alone(tmp_path):
     assert "0 of" in Path(plan).read_text() and "the full tables" in readme.read_text()
     built = tables.campaign_table(paper.parse_args(argv + ["--results", str(tmp_path / "built")]))
     assert Path(built).name == "campaign.md" and (tmp_path / "built" / "main.md").exists()
+    cost = "The campaign so far cost 0.0 CPU-hours of this 2-core machine kind, each run and evaluation counted once"
+    assert cost in Path(built).read_text() and cost in readme.read_text()
     assert "the full tables" not in readme.read_text()
 
 

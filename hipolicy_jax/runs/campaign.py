@@ -237,21 +237,35 @@ class CostModel:
         # ((task, obs, training key), seconds per step, cores stated)
         self._train: list[tuple[tuple[str, str, str], float, bool]] = []
         self._eval: list[tuple[tuple[str, str], float, bool]] = []  # ((task, execution), seconds, cores stated)
+        self._spent: dict[str, dict[str, float]] = {}  # budget → CPU-seconds and counts of what the records hold
         for path in glob.glob(os.path.join(records, "**", "*.json"), recursive=True):
             rec = read_json(path)
             parts = os.path.relpath(path, records).split(os.sep)
             if len(parts) < 5 or "training" not in rec:
                 continue
             task, obs = parts[-4], parts[-3]
+            spent = self._spent.setdefault(parts[0], {"train_s": 0.0, "runs": 0, "eval_s": 0.0, "evaluations": 0})
             key = training_key(rec.get("policy"), (rec.get("train") or {}).get("batch_size"))
             steps, wall = rec["training"].get("steps"), rec["training"].get("wall_time_s")
             cores = rec["training"].get("cpu_cores")
+            if wall:
+                spent["train_s"] += wall * (cores or 2)
+                spent["runs"] += 1
             if steps and wall:
                 self._train.append(((task, obs, key), wall * (cores or 2) / steps, cores is not None))
             for ev in rec.get("evaluations", {}).values():
                 if ev.get("eval_s"):
+                    spent["eval_s"] += ev["eval_s"] * (ev.get("cpu_cores") or 2)
+                    spent["evaluations"] += 1
                     self._eval.append(((task, ev["settings"]["execution"]), ev["eval_s"] * (ev.get("cpu_cores") or 2),
                                        ev.get("cpu_cores") is not None))
+
+    def spent(self, budget: str) -> dict[str, float]:
+        """What the records of ``budget`` cost, each run and each evaluation counted once (however many tables use
+        it; the pilot's runs included): CPU-seconds of training (``train_s``) over ``runs`` runs and of evaluation
+        (``eval_s``) over ``evaluations`` evaluations — an evaluation another column reuses took no time and is
+        not counted."""
+        return dict(self._spent.get(budget, {"train_s": 0.0, "runs": 0, "eval_s": 0.0, "evaluations": 0}))
 
     @staticmethod
     def _median(rows, *matches) -> float | None:

@@ -743,7 +743,12 @@ def campaign_table(args: "CampaignArgs") -> str:
         plan = write_plan(args, now)
         progress = (f"Interim: {len(jobs) - len(left)} of {len(jobs)} evaluations recorded; what is left and its "
                     f"estimated cost: [campaign_plan.md]({{}}).")
-    lines = [f"# Campaign ({args.budget})", "", f"Command: `{command_line(args)}`", "",
+    spent = CostModel(args.records, args.runs).spent(args.budget)
+    cost = (f"The campaign{' so far' if left else ''} cost {(spent['train_s'] + spent['eval_s']) / 3600:.1f} CPU-hours of this 2-core "
+            f"machine kind, each run and evaluation counted once (the pilot's included): "
+            f"{spent['train_s'] / 3600:.1f} h training {spent['runs']} runs, {spent['eval_s'] / 3600:.1f} h making "
+            f"{spent['evaluations']} evaluations; a table's Cost line counts the runs it shares with others too.")
+    lines = [f"# Campaign ({args.budget})", "", f"Command: `{command_line(args)}`", "", cost, "",
              f"{len(jobs)} evaluations; tables:", ""] + [f"- [{os.path.basename(p)}]({os.path.basename(p)})"
                                                            for p in paths]
     if progress:
@@ -755,7 +760,7 @@ def campaign_table(args: "CampaignArgs") -> str:
         f.write("\n".join(lines) + "\n")
     if args.readme:
         readme_dir = os.path.dirname(os.path.abspath(args.readme))
-        section = readme_section(paths, readme_dir)
+        section = cost + "\n\n" + readme_section(paths, readme_dir)
         if progress:
             section = progress.format(os.path.relpath(plan, readme_dir)) + "\n\n" + section
         if skipped:
