@@ -31,11 +31,12 @@ from hipolicy_jax.evaluation import calibration
 from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
 from hipolicy_jax.runs.budgets import BUDGETS, run_config
 from hipolicy_jax.runs.calibrate import run_entropies
+from hipolicy_jax.runs import records as rec_lib
 from hipolicy_jax.runs.lock import CAMPAIGN_LOCK_FILE, RunLock
 from hipolicy_jax.runs.store import Run, eval_key, make_evaluator, read_json, write_json
 from hipolicy_jax.runs.train import RunConfig, cpu_cores, ensure_trained, finished, prepare_out_dir
 
-RECORD_VERSION = 1
+RECORD_VERSION = rec_lib.RECORD_VERSION
 
 
 class Column(NamedTuple):
@@ -120,8 +121,7 @@ class Campaign:
 
     def record(self, task: str, col: Column, seed: int, run_changes: dict | None = None) -> dict:
         """The (task, seed) run's record of this column's variant ({} before one exists)."""
-        path = record_path(self.records, self.runs, self.run_config(task, col, seed, run_changes))
-        return read_json(path) if os.path.exists(path) else {}
+        return read_record(record_path(self.records, self.runs, self.run_config(task, col, seed, run_changes)))
 
     def recorded(self, task: str, col: Column, seed: int, run_changes: dict | None = None) -> bool:
         """Whether the (task, seed) run's record holds this column's evaluation."""
@@ -138,16 +138,23 @@ class Campaign:
         cfg = self.run_config(task, col, seed, run_changes)
         path = record_path(self.records, self.runs, cfg)
         inference, key = self._key(col, seed)
-        record = read_json(path) if os.path.exists(path) else {}
+        record = read_record(path)
         if key in record.get("evaluations", {}) or self.from_records:
             return record.get("evaluations", {}).get(key)
         # one campaign process works on a run at a time (another shard's: RunLockedError, the caller skips it)
         with RunLock(prepare_out_dir(cfg.out_dir()), CAMPAIGN_LOCK_FILE, "campaign process",
                      "another shard is training or evaluating it; this one leaves it to that one"):
-            record = read_json(path) if os.path.exists(path) else {}  # that shard may have just recorded it
+            record = read_record(path)  # that shard may have just recorded it
             if key in record.get("evaluations", {}):
                 return record["evaluations"][key]
             run = ensure_trained(cfg)
+            summary = run_summary(run)
+            net = rec_lib.network(run.policy.params, summary["training"].get("final_loss"))
+            if record and not rec_lib.same_network(record.get("network"), net):
+                print(f"[campaign] {path}: the run was retrained and its network differs from the record's; the "
+                      f"record's {len(record.get('evaluations', {}))} evaluations move to 'superseded' and are "
+                      f"made again on the new network", flush=True)
+            record = rec_lib.supersede(record, net) if record else record
             ev = self._evaluator(run, inference)
             thresholds = self._thresholds(run, col, ev)
             thresholds_json = (None if thresholds is None
@@ -166,11 +173,26 @@ class Campaign:
                               "steps": [int(x) for x in np.asarray(result.steps)],
                               "decisions": [int(x) for x in valid.sum(axis=1)], "eval_s": time.perf_counter() - t0,
                               "cpu_cores": cpu_cores()}
+            evaluation["network"] = net
             evaluation = jsonio.loads(jsonio.dumps(evaluation))  # as records hold it (NaN: None), fresh or reread
             record = {"version": RECORD_VERSION, "budget": self.budget, "run_dir": os.path.relpath(run.run_dir),
-                      **run_summary(run), "evaluations": {**record.get("evaluations", {}), key: evaluation}}
+                      **summary, "network": record.get("network", net),
+                      "evaluations": {**record.get("evaluations", {}), key: evaluation},
+                      **({"superseded": record["superseded"]} if record.get("superseded") else {})}
             write_json(path, record)
             return evaluation
+
+
+def read_record(path: str) -> dict:
+    """The record at ``path`` ({} when there is none); a version-1 record is refused (it may mix networks:
+    ``python -m experiments.records upgrade`` stamps its evaluations' networks from git)."""
+    if not os.path.exists(path):
+        return {}
+    record = read_json(path)
+    if record.get("version", 1) < RECORD_VERSION:
+        raise ValueError(f"{path}: record version {record.get('version', 1)}, expected {RECORD_VERSION}; upgrade the "
+                         f"records first (python -m experiments.records upgrade)")
+    return record
 
 
 def _same_evaluation(evaluations: dict[str, dict], settings: dict, thresholds: list | None) -> str | None:
@@ -253,7 +275,9 @@ class CostModel:
                 spent["runs"] += 1
             if steps and wall:
                 self._train.append(((task, obs, key), wall * (cores or 2) / steps, cores is not None))
-            for ev in rec.get("evaluations", {}).values():
+            evaluations = [*rec.get("evaluations", {}).values(),
+                           *(ev for old in rec.get("superseded", []) for ev in old["evaluations"].values())]
+            for ev in evaluations:
                 if ev.get("eval_s"):
                     spent["eval_s"] += ev["eval_s"] * (ev.get("cpu_cores") or 2)
                     spent["evaluations"] += 1

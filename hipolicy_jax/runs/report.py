@@ -11,6 +11,7 @@ from typing import NamedTuple
 import numpy as np
 
 from hipolicy_jax.evaluation import stats
+from hipolicy_jax.runs.records import same_network
 
 def mean_std(values, scale: float = 1.0, digits: int = 1) -> str:
     """'m ± s' (sample std over seeds) of the finite values, 'm' for one value, '–' for none."""
@@ -87,6 +88,18 @@ def ci(records: list[dict], metric: str, seeds, tasks, scale: float = 1.0, **mat
     return interval_text(iv, scale)
 
 
+def check_one_network(records: list[dict], seeds, task: str, new: str, base: str) -> None:
+    """Refuse to pair two evaluations of one run made on different networks (a run retrained between them):
+    ``ValueError`` naming the run. Evaluations of two runs (DP vs DP+HiPolicy) are two networks by design."""
+    for s in seeds:
+        a, b = _matching(records, s, {"task": task, "column": new}), _matching(records, s, {"task": task,
+                                                                                           "column": base})
+        if a and b and a.get("run") == b.get("run") and not same_network(a.get("network"), b.get("network")):
+            raise ValueError(f"{a.get('run')}: '{new}' and '{base}' were evaluated on different networks "
+                             f"({a.get('network')} vs {b.get('network')}); re-evaluate the run so that its record "
+                             f"holds one network")
+
+
 class Paired(NamedTuple):
     """A paired comparison of two columns' success on the shared initial states."""
 
@@ -97,6 +110,8 @@ class Paired(NamedTuple):
 def paired(records: list[dict], seeds, tasks, new: str, base: str) -> Paired | None:
     """``new`` − ``base`` success pooled over ``tasks`` (each task's seeds both columns have, episode by episode);
     None while a task has no pair."""
+    for t in tasks:
+        check_one_network(records, seeds, t, new, base)
     a = [outcomes(records, "success_rate", seeds, task=t, column=new) for t in tasks]
     b = [outcomes(records, "success_rate", seeds, task=t, column=base) for t in tasks]
     diffs = []

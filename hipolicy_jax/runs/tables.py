@@ -34,7 +34,7 @@ from hipolicy_jax.runs.train import RunConfig, cpu_cores
 
 TaskName = Literal["press_button", "latch_door", "stack_cubes", "pick_place"]
 ObsName = Literal["state", "image", "pointcloud"]
-TABLES = ("main", "ablation", "execution", "thresholds", "hparams", "pilot", "campaign")
+TABLES = ("main", "ablation", "execution", "thresholds", "hparams", "pilot", "budget", "campaign")
 BASELINE_NAME = {"state": "DP", "image": "DP (image)", "pointcloud": "DP3"}
 
 
@@ -98,6 +98,10 @@ class CampaignArgs(PaperArgs):
     # end by rebuilding every table and the README section from the records; --no-tables writes only the plan of
     # what is left, so that a campaign narrowed to force a few runs (--tasks / --seeds) leaves the full tables alone
     tables: bool = True
+    # protocol v2's training-budget table: DP vs DP+HiPolicy (state, 100 demos) at these training step counts
+    budget_steps: tuple[int, ...] = (2000, 8000, 24000)
+    # only these tables' evaluations (and tables), e.g. `--only budget`: two processes can work on two tables
+    only: tuple[Literal["main", "ablation", "execution", "thresholds", "hparams", "budget"], ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,9 +127,18 @@ class HparamsArgs(PaperArgs):
     rows: tuple[tuple[int, int, int], ...] = ((3, 8, 3), (1, 8, 3), (5, 8, 3), (3, 4, 3), (3, 8, 1))
 
 
+@dataclasses.dataclass(frozen=True)
+class BudgetArgs(PaperArgs):
+    """Training-budget sensitivity (results/PROTOCOL.md v2): DP vs DP+HiPolicy (state, 100 demos) trained for
+    several step counts; the budget's own count reuses the main table's runs."""
+
+    tasks: tuple[TaskName, ...] = ("press_button", "stack_cubes")
+    steps: tuple[int, ...] = (2000, 8000, 24000)
+
+
 SUBCOMMANDS: dict[str, type] = {"main": MainArgs, "ablation": AblationArgs, "execution": ExecutionArgs,
                                 "thresholds": ThresholdsArgs, "hparams": HparamsArgs, "pilot": PilotArgs,
-                                "campaign": CampaignArgs}
+                                "budget": BudgetArgs, "campaign": CampaignArgs}
 
 
 def table_name(args: PaperArgs) -> str:
@@ -188,21 +201,31 @@ def _table_record(camp: Campaign, task: str, col: Column, seed: int, run_changes
             "training_s": training.get("wall_time_s"), "training_cores": training.get("cpu_cores"), **{k: v for k, v in evaluation.items() if k != "settings"}}
 
 
+def table_run_changes(args: PaperArgs, task: str) -> list[dict]:
+    """The run-level changes a table trains ``task``'s runs under: its regime's, or for the training-budget table
+    one set per step count (the budget's own count: none)."""
+    if isinstance(args, BudgetArgs):
+        default = BUDGETS[args.budget].train.num_steps
+        return [{} if n == default else {"train.num_steps": n} for n in args.steps]
+    return [regime_changes(args.regime, task)]
+
+
 def collect(args: PaperArgs, columns: list[Column]) -> list[dict]:
     """Every (task, seed, column) evaluation of the table, from its run's record or trained / evaluated and recorded
     (one progress bar over them, with an ETA) → one record per evaluation (per-episode outcomes included)."""
     camp = campaign(args)
-    jobs = [(t, s, c) for t in args.tasks for c in columns for s in column_seeds(args, c)]
+    jobs = [(t, s, c, ch) for t in args.tasks for ch in table_run_changes(args, t) for c in columns
+            for s in column_seeds(args, c)]
     records, missing = [], []
     bar = tqdm(jobs, desc=f"{table_name(args)} ({args.regime})", unit="eval", disable=not args.progress,
                dynamic_ncols=True)
-    for task, seed, col in bar:
-        bar.set_postfix_str(f"{task} seed {seed} {col.label}")
-        evaluation = camp.evaluate(task, col, seed, regime_changes(args.regime, task))
+    for task, seed, col, changes in bar:
+        bar.set_postfix_str(f"{task} seed {seed} {col.label} {changes_text(changes)}")
+        evaluation = camp.evaluate(task, col, seed, changes)
         if evaluation is None:
-            missing.append(f"{task} seed {seed} {col.label}")
+            missing.append(f"{task} seed {seed} {col.label} {changes_text(changes)}")
             continue
-        records.append(_table_record(camp, task, col, seed, regime_changes(args.regime, task), evaluation))
+        records.append(_table_record(camp, task, col, seed, changes, evaluation))
         steps = evaluation["mean_steps_success"]  # None (NaN in the record) when no episode succeeded
         tqdm.write(f"[paper] {task} seed {seed} {col.label}: success {evaluation['success_rate']:.2f}, steps "
                    f"(successful) {'–' if steps is None else f'{steps:.1f}'}")
@@ -442,6 +465,72 @@ def execution_table(args: ExecutionArgs) -> str:
                          records, figure)
 
 
+BUDGET_COLUMNS = (Column("DP", "state", DP), Column("DP+HiPolicy"))
+
+
+def budget_records(records: list[dict], steps: int, default: int) -> list[dict]:
+    """The records of runs trained for ``steps`` (the budget's own count: runs without a step change)."""
+    want = {} if steps == default else {"train.num_steps": steps}
+    return [r for r in records if (r.get("regime") or {}) == want]
+
+
+def budget_table(args: BudgetArgs) -> str:
+    """Success of DP and DP+HiPolicy vs training steps, the paired difference per step count, and a plot."""
+    records = collect(args, list(BUDGET_COLUMNS))
+    default = BUDGETS[args.budget].train.num_steps
+    seeds = table_seeds(args)
+    rows = []
+    for task in args.tasks:
+        for n in args.steps:
+            rs = budget_records(records, n, default)
+            rows.append([task, f"{n:,}" + (" (budget)" if n == default else ""),
+                         *(ci(rs, "success_rate", seeds, [task], 100.0, column=c.label) for c in BUDGET_COLUMNS),
+                         *(ci(rs, "mean_steps_success", seeds, [task], column=c.label) for c in BUDGET_COLUMNS),
+                         paired_cell(rs, seeds, [task], "DP+HiPolicy", "DP")])
+    header = ["Task", "Training steps", "DP SR (%)", "DP+HiPolicy SR (%)", "DP steps", "DP+HiPolicy steps",
+              "DP+HiPolicy − DP (points)"]
+    notes = ["Does the gap between DP+HiPolicy and DP shrink, hold or grow with training? The same CPU network and "
+             "batch as the budget, trained for more steps (the learning-rate schedule stretched to the step "
+             "count); 100 demos; entropy-guided execution with per-run calibrated thresholds.",
+             "Steps: mean control steps of the successful episodes.", PAIRED_NOTE]
+
+    def figure(path):
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, axes = plt.subplots(1, len(args.tasks), figsize=(4.2 * len(args.tasks), 3.6), squeeze=False)
+        for ax, task in zip(axes[0], args.tasks):
+            for j, c in enumerate(BUDGET_COLUMNS):
+                pts = [(n, stats.bootstrap_mean(outcomes(budget_records(records, n, default), "success_rate",
+                                                         seeds, task=task, column=c.label), resamples=2000))
+                       for n in args.steps]
+                pts = [(n, iv) for n, iv in pts if np.isfinite(iv.mean)]
+                if not pts:
+                    continue
+                x = np.array([n for n, _ in pts], float) * (1.0 + 0.03 * (j - 0.5))
+                m = np.array([100 * iv.mean for _, iv in pts])
+                err = np.array([[100 * (iv.mean - iv.low), 100 * (iv.high - iv.mean)] for _, iv in pts]).T
+                ax.errorbar(x, m, yerr=err, marker="o", capsize=3, label=c.label, color=f"C{j}")
+            ax.set_xscale("log")
+            ax.set_xticks(list(args.steps), [f"{n:,}" for n in args.steps])
+            ax.set_xlabel("training steps (batch 64)")
+            ax.set_ylabel("success rate (%)")
+            ax.set_ylim(-3, 103)
+            ax.set_title(task, fontsize=10)
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=8)
+        fig.suptitle("success vs training budget (95 % intervals over seeds × episodes)", fontsize=10)
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        return path
+
+    return write_results(args, "Training-budget sensitivity: DP vs DP+HiPolicy", notes, markdown_table(header, rows),
+                         records, figure)
+
+
 def thresholds_columns(args: ThresholdsArgs) -> list[Column]:
     return [Column(f"p{a:g}/p{b:g}", percentiles=(a, b)) for a, b in args.pairs] + \
         [Column("always stride 1", guided=False)]
@@ -555,12 +644,14 @@ def pilot_table(args: PilotArgs) -> str:
 
 
 COLUMNS = {"main": main_columns, "ablation": lambda args: [Column(label, "state", c) for label, c in ABLATION],
+           "budget": lambda args: list(BUDGET_COLUMNS),
            "execution": lambda args: list(EXECUTION), "thresholds": thresholds_columns, "hparams": hparams_columns}
 
 
 def protocol_tables(args: "CampaignArgs") -> list[PaperArgs]:
-    """The tables of results/PROTOCOL.md v1 with the campaign's settings: (a) main in both regimes, (c) execution in
-    both regimes, (b) ablation in Rlow on all tasks, (d) thresholds and (e) hyper-parameters in Rlow on two tasks."""
+    """The tables of results/PROTOCOL.md with the campaign's settings: (a) main in both regimes, (c) execution in
+    both regimes, (b) ablation in Rlow on all tasks, (d) thresholds and (e) hyper-parameters in Rlow on two tasks
+    (v1), and the training-budget table (v2); ``--only`` keeps the named tables."""
     common = {f.name: getattr(args, f.name) for f in dataclasses.fields(PaperArgs)}
     two = tuple(t for t in ("press_button", "latch_door") if t in args.tasks)
     tables = []
@@ -571,6 +662,12 @@ def protocol_tables(args: "CampaignArgs") -> list[PaperArgs]:
     if "rlow" in args.regimes:
         r = {**common, "regime": "rlow"}
         tables += [AblationArgs(**r), ThresholdsArgs(**{**r, "tasks": two}), HparamsArgs(**{**r, "tasks": two})]
+    budget_tasks = tuple(t for t in BudgetArgs.tasks if t in args.tasks)
+    if args.budget_steps and budget_tasks and "r100" in args.regimes:  # protocol v2's training-budget table
+        tables.append(BudgetArgs(**{**common, "regime": "r100", "tasks": budget_tasks, "baseline_seeds": ()},
+                                 steps=tuple(args.budget_steps)))
+    if args.only:
+        tables = [t for t in tables if table_name(t) in args.only]
     return tables
 
 
@@ -582,11 +679,12 @@ def campaign_jobs(args: "CampaignArgs", tables: list[PaperArgs]) -> tuple[list[J
         for col in COLUMNS[table_name(t)](t):
             for task in t.tasks:
                 try:
-                    changes = regime_changes(t.regime, task)
+                    run_changes = table_run_changes(t, task)
                 except ValueError:
                     skipped.add(f"{task} ({t.regime}: no pilot choice yet)")
                     continue
-                jobs += [Job(task, col, seed, tuple(sorted(changes.items()))) for seed in column_seeds(t, col)]
+                jobs += [Job(task, col, seed, tuple(sorted(changes.items())))
+                         for changes in run_changes for seed in column_seeds(t, col)]
     return schedule(jobs, tuple(args.seeds)), skipped
 
 
@@ -774,7 +872,7 @@ def campaign_table(args: "CampaignArgs") -> str:
 
 BUILDERS = {"main": main_table, "ablation": ablation_table, "execution": execution_table,
             "thresholds": thresholds_table, "hparams": hparams_table, "pilot": pilot_table,
-            "campaign": campaign_table}
+            "budget": budget_table, "campaign": campaign_table}
 
 
 
