@@ -13,6 +13,7 @@ from pathlib import Path
 import sys
 
 import imageio.v3 as iio
+from scipy import stats as scipy_stats
 import jax
 import numpy as np
 import pytest
@@ -273,6 +274,34 @@ def test_paper_tables_on_fake_numbers(tmp_path, monkeypatch):
         assert re.search(r"\d+\.\d \[\d+\.\d, \d+\.\d\]", text), text  # mean [95 % interval]
     main_md = open(tmp_path / "res" / "main.md").read()
     assert "DP+HiPolicy − DP (points)" in main_md and re.search(r"p=[\d.e-]+ \((wins|ties|loses)\)", main_md)
+    # cells by hand from the records: per seed the mean over episodes, then mean ± t(0.975, 2)·s/√3 (clipped to
+    # [0, 100] for a rate); the paired cell from the per-seed differences, its p from the t test; the total average
+    # from the task means with the Welch standard error and degrees of freedom
+    recs = _load(tmp_path / "res" / "main.json")["records"]
+
+    def seed_rates(task, column):
+        return np.array([np.mean(r["success"]) for r in sorted(recs, key=lambda r: r["seed"])
+                         if r["task"] == task and r["column"] == column])
+
+    def by_hand(v, lo=0.0, hi=1.0, signed=False):
+        m, se = v.mean(), v.std(ddof=1) / math.sqrt(v.size)
+        half = scipy_stats.t.ppf(0.975, v.size - 1) * se
+        f = "+.1f" if signed else ".1f"
+        return f"{100 * m:{f}} [{100 * max(m - half, lo):{f}}, {100 * min(m + half, hi):{f}}]", m, se
+
+    row = next(line for line in main_md.splitlines() if line.startswith("| press_button")).split(" | ")
+    dp, hi = seed_rates("press_button", "DP"), seed_rates("press_button", "DP+HiPolicy")
+    assert row[3] == by_hand(dp)[0] and row[4] == by_hand(hi)[0]
+    diff, m, se = by_hand(hi - dp, -1.0, 1.0, signed=True)
+    p = 2 * scipy_stats.t.sf(abs(m) / se, 2)
+    verdict = "ties" if p >= 0.05 else ("wins" if m > 0 else "loses")
+    assert row[7] == f"{diff}, p={p:.2g} ({verdict})", row
+    se2 = [by_hand(seed_rates(t, "DP"))[2] ** 2 for t in tasks]
+    mean = np.mean([seed_rates(t, "DP").mean() for t in tasks])
+    df = sum(se2) ** 2 / sum(v ** 2 / 2 for v in se2)
+    half = scipy_stats.t.ppf(0.975, df) * math.sqrt(sum(se2)) / 3
+    total = next(line for line in main_md.splitlines() if line.startswith("| **Total average**")).split(" | ")
+    assert total[3] == f"{100 * mean:.1f} [{100 * max(mean - half, 0):.1f}, {100 * min(mean + half, 1):.1f}]"
     execution_md = open(tmp_path / "res" / "execution.md").read()
     for label in ("DP SR", "DP+TE SR", "DP+AAC SR", "w/o EG SR", "HiPolicy SR", "HiPolicy Decisions",
                   "HiPolicy − DP+TE (points)", "HiPolicy − DP+AAC (points)"):
@@ -306,26 +335,38 @@ def test_findings_gather_each_paired_comparison_with_its_verdict(tmp_path):
     write_json(str(tmp_path / "execution.json"), {"records": execution})
     text = open(tables.findings_table(camp, built)).read()
     rows = {line.split(" | ")[0][2:]: line for line in text.splitlines()[1:] if line.startswith("| ")}
-    assert rows["DP+HiPolicy vs DP"].split(" | ")[2:] == ["-100.0 loses", "+100.0 wins", "+0.0, p=1 (ties)",
-                                                           "1/0/1 |"]
-    assert rows["DP3+HiPolicy vs DP3"].split(" | ")[2:] == ["–", "–", "–", "0/0/0 |"]  # no DP3 record yet
+    # columns: per task, the average (seed-level t), sign-flip p, episode-level McNemar p (30 episodes each way:
+    # p = 1), leave one task out (needs 3 tasks), W/T/L
+    assert rows["DP+HiPolicy vs DP"].split(" | ")[2:] == ["-100.0 loses", "+100.0 wins", "+0.0, p=1 (ties)", "1",
+                                                           "1", "–", "1/0/1 |"]
+    assert rows["DP3+HiPolicy vs DP3"].split(" | ")[2:] == ["–"] * 6 + ["0/0/0 |"]  # no DP3 record yet
     assert rows["HiPolicy vs DP+TE"].split(" | ")[2:4] == ["+0.0 ties", "+0.0 ties"]
     assert "HiPolicy vs DP+AAC" in rows and "HiPolicy vs DP" not in rows  # the main table's pair, counted once
-    assert "Over the 6 (comparison, task) cells: HiPolicy wins 1, ties 4, loses 1 (0 of the wins and losses marked †)." in text
+    assert "HiPolicy vs w/o EG" in rows  # the same-network comparison (no w/o EG records here: '–')
+    assert "Over the 6 (comparison, task) cells: HiPolicy wins 1, ties 4, loses 1." in text
+    assert "## Entropy-guided execution, same network: HiPolicy vs w/o EG" in text
 
 
-def test_verdict_is_marked_fragile_when_mcnemar_does_not_back_it():
-    """The protocol's verdict (interval excludes 0) stands; a win or loss with McNemar p >= 0.05 is marked."""
-    from hipolicy_jax.evaluation.stats import Interval
-
-    assert report.verdict_text(report.Paired(Interval(0.013, 0.003, 0.03), 0.125)) == "wins†"
-    assert report.verdict_text(report.Paired(Interval(0.013, 0.003, 0.03), 0.01)) == "wins"
-    assert report.verdict_text(report.Paired(Interval(-0.2, -0.3, -0.1), 0.05)) == "loses†"
-    assert report.verdict_text(report.Paired(Interval(0.0, -0.1, 0.1), 0.9)) == "ties"
-    # 4 seeds × 100 episodes, the new column succeeding once more per seed: the bootstrap excludes 0, p = 0.125
+def test_paired_cell_is_seed_level():
+    """4 seeds × 100 episodes, the new column succeeding once more on every seed: every seed's difference is +1
+    point, so the interval uses the episode-level SE √(4 · 0.01/100)/4 = 0.005 with t(0.975, 3) = 3.1824 and
+    p = 2·P(T_3 > 2) = 0.139: a tie (version 1's episode bootstrap called this a win)."""
     ep = [{"task": "a", "seed": s, "column": c, "success_rate": 0.5,
            "success": [True] * 50 + [c == "new"] + [False] * 49} for s in range(4) for c in ("new", "base")]
-    assert report.paired_cell(ep, range(4), ["a"], "new", "base") == "+1.0 [+0.2, +2.0], p=0.12 (wins†)"
+    assert report.paired_cell(ep, range(4), ["a"], "new", "base") == "+1.0 [-0.6, +2.6], p=0.14 (ties)"
+    c = report.paired(ep, range(4), ["a"], "new", "base")
+    assert c.mcnemar_p == pytest.approx(2 / 16)  # 4 discordant episodes, all one way
+    assert c.sign_flip_p == pytest.approx(2 / 16)  # 4 equal positive seed differences
+
+
+def test_tables_refuse_to_pair_two_networks_of_one_run():
+    net = [{"params_sha256": "a" * 64, "final_loss": 0.1}, {"params_sha256": "b" * 64, "final_loss": 0.1}]
+    ep = [{"task": "a", "seed": 0, "column": c, "run": "runs/x/seed0", "network": n, "success": [True, False]}
+          for c, n in (("HiPolicy", net[0]), ("w/o EG", net[1]))]
+    with pytest.raises(ValueError, match="runs/x/seed0.*different networks"):
+        report.paired(ep, (0,), ["a"], "HiPolicy", "w/o EG")
+    ep[1]["network"] = net[0]
+    assert report.paired(ep, (0,), ["a"], "HiPolicy", "w/o EG").diff.mean == 0.0
 
 
 def test_table_formatting_helpers():
@@ -340,10 +381,10 @@ def test_table_formatting_helpers():
     # an average or a pooled comparison over tasks of which one has no record yet is '–', not a partial average
     ep = [{"task": t, "seed": 0, "column": c, "success_rate": 0.5, "success": [True, False] * 5}
           for t, c in (("a", "base"), ("b", "base"), ("a", "new"))]
-    assert report.ci(ep, "success_rate", (0,), ["a"], 100.0, column="new") == "50.0 [20.0, 80.0]"
+    assert report.ci(ep, "success_rate", (0,), ["a"], 100.0, column="new") == "50.0"  # one network: no interval
     assert report.ci(ep, "success_rate", (0,), ["a", "b"], 100.0, column="new") == "–"
     assert report.ci(ep, "success_rate", (0,), ["a", "b"], 100.0, column="base") != "–"
-    assert report.paired_cell(ep, (0,), ["a"], "new", "base").startswith("+0.0, p=1")
+    assert report.paired_cell(ep, (0,), ["a"], "new", "base") == "+0.0 (1 seed: no test)"
     assert report.paired_cell(ep, (0,), ["a", "b"], "new", "base") == "–"
 
 
@@ -400,6 +441,29 @@ def test_campaign_records_an_evaluation_and_rebuilds_from_it(tiny, tmp_path):
     assert again["success"] == evaluation["success"] and again["thresholds"] == evaluation["thresholds"]
     other = camp.evaluate(TASK, Column("p40/p90", percentiles=(40.0, 90.0)), 0)
     assert "same_as" not in other and other["thresholds"] != evaluation["thresholds"]
+    # one network per record: the record and each evaluation carry the EMA parameters' hash and the final loss
+    from hipolicy_jax.runs import records as rec_lib
+
+    net = {"params_sha256": rec_lib.params_fingerprint(load_run(run).policy.params),
+           "final_loss": _load(os.path.join(run, "summary.json"))["final_loss"]}
+    record = _load(path)
+    assert record["version"] == 2 and record["network"] == net
+    assert all(ev["network"] == net for ev in record["evaluations"].values())
+    # a record of another network (the run retrained elsewhere): its evaluations move to 'superseded' and the
+    # evaluation asked for is made on this network
+    stale = {"params_sha256": "0" * 64, "final_loss": 1.0}
+    record["network"] = stale
+    for ev in record["evaluations"].values():
+        ev["network"] = stale
+    jsonio.dump(record, str(path))
+    assert camp.evaluate(TASK, Column("HiPolicy"), 0) == _load(path)["evaluations"][list(record["evaluations"])[0]]
+    # (a recorded evaluation is of the record's network: returned as it is); a new one is made on the run's
+    # network, and the record's evaluations of the other network move aside, to be made again when asked for
+    plain = camp.evaluate(TASK, Column("w/o EG", guided=False), 0)
+    now = _load(path)
+    assert now["network"] == net and plain["network"] == net and list(now["evaluations"].values()) == [plain]
+    assert now["superseded"][0]["network"] == stale and len(now["superseded"][0]["evaluations"]) == 3
+    assert rec_lib.problems(now) == []
 
 
 def test_pilot_candidates_and_choice():
@@ -484,8 +548,15 @@ def test_campaign_follows_the_protocol():
     two = ("press_button", "latch_door")
     assert got == [("main", "r100", four), ("execution", "r100", four), ("main", "rlow", four),
                    ("execution", "rlow", four), ("ablation", "rlow", four), ("thresholds", "rlow", two),
-                   ("hparams", "rlow", two)]
-    assert all(t.episodes == 100 and t.baseline_seeds == (3, 4) for t in protocol)
+                   ("hparams", "rlow", two), ("budget", "r100", ("press_button", "stack_cubes"))]
+    assert all(t.episodes == 100 and t.baseline_seeds == (3, 4) for t in protocol[:-1])
+    budget = protocol[-1]  # protocol v2: DP and DP+HiPolicy, seeds 0-2, at 2,000 (the main runs), 8,000, 24,000
+    assert budget.steps == (2000, 8000, 24000) and budget.baseline_seeds == () and budget.seeds == (0, 1, 2)
+    assert [c.label for c in tables.COLUMNS["budget"](budget)] == ["DP", "DP+HiPolicy"]
+    assert tables.table_run_changes(dataclasses.replace(budget, budget="cpu"), "press_button") == [
+        {}, {"train.num_steps": 8000}, {"train.num_steps": 24000}]  # the cpu budget's 2,000 steps: its own runs
+    only = tables.protocol_tables(paper.parse_args(["campaign", "--budget", "smoke", "--only", "budget"]))
+    assert [tables.table_name(t) for t in only] == ["budget"]
     main = protocol[0]
     dp, hip, dp3, dp3_hip = tables.main_columns(main)  # the DP3 columns are part of the protocol's main table
     assert dp3.obs_type == dp3_hip.obs_type == "pointcloud"
@@ -536,8 +607,11 @@ def test_campaign_shards_split_runs_and_the_plan_estimates_from_records(tmp_path
     dp_cfg = camp.run_config("press_button", dp, 0)
 
     def write_record(variant, training):
-        record = {"policy": config_to_dict(dp_cfg.policy), "train": config_to_dict(dp_cfg.train), "training": training,
-                  "evaluations": {key0: {"settings": json.loads(key0), "eval_s": 5.0, "cpu_cores": 2}}}
+        net = {"params_sha256": None, "final_loss": 0.1}
+        record = {"version": 2, "network": net, "policy": config_to_dict(dp_cfg.policy),
+                  "train": config_to_dict(dp_cfg.train), "training": training,
+                  "evaluations": {key0: {"settings": json.loads(key0), "eval_s": 5.0, "cpu_cores": 2,
+                                         "network": net}}}
         path = tmp_path / "records" / "smoke" / "press_button" / "state" / variant / "seed0.json"
         path.parent.mkdir(parents=True)
         path.write_text(json.dumps(record))
@@ -570,7 +644,8 @@ def test_campaign_shards_split_runs_and_the_plan_estimates_from_records(tmp_path
     dp3_cfg = camp.run_config("stack_cubes", dp3, 0)
     pc = tmp_path / "records" / "smoke" / "press_button" / "pointcloud" / "dp" / "seed0.json"
     pc.parent.mkdir(parents=True)
-    pc.write_text(json.dumps({"policy": config_to_dict(dp3_cfg.policy), "train": config_to_dict(dp3_cfg.train),
+    pc.write_text(json.dumps({"version": 2, "policy": config_to_dict(dp3_cfg.policy),
+                              "train": config_to_dict(dp3_cfg.train),
                               "training": {"steps": 10, "wall_time_s": 300.0, "cpu_cores": 1}, "evaluations": {}}))
     fresh = CostModel.refresh(str(tmp_path / "records"), str(tmp_path / "runs"), camp, rows[5])
     assert (fresh["done"], fresh["trains"], fresh["seconds"]) == (False, True, 30.0 * steps + 10.0)

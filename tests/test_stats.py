@@ -1,64 +1,153 @@
-"""Bootstrap intervals, paired differences and the exact McNemar test against closed forms."""
+"""Seed-level statistics (results/PROTOCOL.md v2) against hand-computed values, their coverage on simulated
+campaigns with a known seed effect, the sign-flip permutation test and the exact McNemar test."""
 
 import math
 
 import numpy as np
 import pytest
+from scipy import stats as sps
 
 from hipolicy_jax.evaluation import stats
 
-
-def test_bootstrap_mean_is_the_mean_of_seed_means_and_covers_it():
-    groups = {0: [1, 1, 0, 1], 1: [0, 0, 1, 0, 0, 0], 2: [1, 1, 1]}
-    iv = stats.bootstrap_mean(groups, resamples=4000)
-    assert iv.mean == pytest.approx(np.mean([0.75, 1 / 6, 1.0]))
-    assert 0.0 <= iv.low < iv.mean < iv.high <= 1.0
-    assert stats.bootstrap_mean(groups, resamples=4000) == iv  # deterministic for a fixed seed
+# t quantiles by hand (tables): t(0.975, 1) = 12.7062, t(0.975, 2) = 4.3027, t(0.95, 2) = 2.9200
+T975_1, T975_2, T95_2 = 12.706204736, 4.302652730, 2.919985580
 
 
-def test_bootstrap_width_matches_the_binomial_standard_error_for_one_seed():
-    """One seed of n Bernoulli(p) outcomes: the interval is about ±1.96·sqrt(p(1-p)/n)."""
-    x = np.r_[np.ones(60), np.zeros(40)]
-    iv = stats.bootstrap_mean([x])
-    half = 1.96 * math.sqrt(0.6 * 0.4 / 100)
-    assert iv.low == pytest.approx(0.6 - half, abs=0.015) and iv.high == pytest.approx(0.6 + half, abs=0.015)
+def test_two_seed_interval_by_hand():
+    """Seeds 0.75 and 0.25: mean 0.5, s = 0.35355, SE = 0.25, half-width 12.7062 · 0.25; t = 2 on 1 df gives
+    p = 1 − 2·atan(2)/π."""
+    est = stats.seed_mean({0: [1, 0, 1, 1], 1: [0, 0, 1, 0]})
+    assert est.mean == pytest.approx(0.5)
+    assert est.se == pytest.approx(0.25)
+    assert est.low == pytest.approx(0.5 - T975_1 * 0.25) and est.high == pytest.approx(0.5 + T975_1 * 0.25)
+    assert est.p == pytest.approx(1 - 2 * math.atan(2) / math.pi)
+    assert (est.df, est.seeds) == (1.0, 2)
+    clipped = stats.seed_mean({0: [1, 0, 1, 1], 1: [0, 0, 1, 0]}, bounds=(0.0, 1.0))
+    assert (clipped.low, clipped.high, clipped.p) == (0.0, 1.0, est.p)
 
 
-def test_seed_variation_widens_the_interval():
-    """Seeds that disagree (0 % vs 100 %) give a far wider interval than seeds that agree at the same mean."""
-    agree = stats.bootstrap_mean({s: np.r_[np.ones(50), np.zeros(50)] for s in range(4)}, resamples=4000)
-    disagree = stats.bootstrap_mean({0: np.ones(100), 1: np.zeros(100), 2: np.ones(100), 3: np.zeros(100)},
-                                    resamples=4000)
-    assert agree.mean == disagree.mean == 0.5
-    assert (disagree.high - disagree.low) > 3 * (agree.high - agree.low)
+def test_three_seed_interval_and_level_by_hand():
+    """Seed values 2, 4, 9 (steps): mean 5, s = √13, SE = √(13/3); the 90 % interval uses t(0.95, 2)."""
+    groups = {0: [1.0, 3.0], 1: [4.0], 2: [9.0, math.nan]}  # NaN (a failed episode's steps) is dropped
+    se = math.sqrt(13 / 3)
+    est = stats.seed_mean(groups)
+    assert (est.mean, est.se) == (pytest.approx(5.0), pytest.approx(se))
+    assert est.high - est.mean == pytest.approx(T975_2 * se)
+    est90 = stats.seed_mean(groups, level=0.90)
+    assert est90.high - est90.mean == pytest.approx(T95_2 * se)
+    assert est90.p == est.p == pytest.approx(2 * sps.t.sf(5 / se, 2))
 
 
-def test_nonfinite_values_are_dropped_and_empty_is_nan():
-    iv = stats.bootstrap_mean({0: [50.0, math.nan, 70.0], 1: [math.nan]})
-    assert iv.mean == 60.0
-    assert all(math.isnan(v) for v in stats.bootstrap_mean({0: [math.nan]}))
-    assert stats.bootstrap_mean({0: [3.0]}) == (3.0, 3.0, 3.0)
+def test_equal_seeds_fall_back_to_the_episode_standard_error():
+    """Three seeds at exactly 50 % (10 episodes each): s = 0, so SE = √(Σ var/E)/S = √(3 · (0.2778/10))/3."""
+    groups = {s: np.r_[np.ones(5), np.zeros(5)] for s in range(3)}
+    v = np.var(np.r_[np.ones(5), np.zeros(5)], ddof=1) / 10
+    est = stats.seed_mean(groups)
+    assert est.se == pytest.approx(math.sqrt(3 * v) / 3)
+    assert est.high - est.low == pytest.approx(2 * T975_2 * est.se)
+    # all equal and no episode variance (everything succeeded): a point, p = 1 for a zero mean
+    zero = stats.seed_mean({s: np.zeros(4) for s in range(3)})
+    assert (zero.low, zero.high, zero.p) == (0.0, 0.0, 1.0)
 
 
-def test_paired_difference_and_mcnemar():
+def test_one_seed_has_no_interval_and_empty_is_nan():
+    one = stats.seed_mean({0: [1, 0, 1]})
+    assert one.mean == pytest.approx(2 / 3) and math.isnan(one.low) and math.isnan(one.p)
+    assert stats.verdict(one) == "–"
+    assert all(math.isnan(v) for v in stats.seed_mean({0: [math.nan]})[:3])
+
+
+def test_average_by_hand_with_welch_degrees_of_freedom():
+    """Task A seeds (1, 2, 3): SE² = 1/3; task B seeds (0, 4): SE² = 8/2 = 4. Mean (2 + 2)/2, SE = √(13/3)/2,
+    df = (13/3)² / ((1/3)²/2 + 4²/1)."""
+    a = {0: [1.0], 1: [2.0], 2: [3.0]}
+    b = {0: [0.0], 1: [4.0]}
+    est = stats.average([a, b, {0: [math.nan]}])  # the empty task is left out
+    se = math.sqrt(1 / 3 + 4) / 2
+    df = (13 / 3) ** 2 / ((1 / 3) ** 2 / 2 + 16 / 1)
+    assert (est.mean, est.se, est.df) == (pytest.approx(2.0), pytest.approx(se), pytest.approx(df))
+    assert est.high - est.mean == pytest.approx(sps.t.ppf(0.975, df) * se)
+    assert est.seeds == 5
+
+
+def test_paired_difference_is_per_seed_then_over_seeds():
     a = {0: [1, 1, 1, 0, 1], 1: [1, 1, 0, 1, 1], 2: [0, 0, 0, 0, 0]}
-    b = {0: [1, 0, 0, 0, 1], 1: [1, 0, 0, 1, 0], 3: [1, 1, 1, 1, 1]}  # seed 2 / 3 are not shared
-    d = stats.paired_difference(a, b, resamples=4000)
-    assert d.mean == pytest.approx(0.4)  # (2/5 + 2/5) / 2
-    only_a, only_b, p = stats.mcnemar_exact(a, b)
-    assert (only_a, only_b) == (4, 0)
-    assert p == pytest.approx(2 / 16)  # exact two-sided binomial: 2 · P(X <= 0 | n = 4)
-    assert stats.mcnemar_exact({0: [1, 0]}, {0: [1, 0]}) == (0, 0, 1.0)
-    assert stats.verdict(stats.Interval(0.1, 0.02, 0.2)) == "wins"
-    assert stats.verdict(stats.Interval(-0.1, -0.2, -0.01)) == "loses"
-    assert stats.verdict(stats.Interval(0.1, -0.02, 0.2)) == "ties"
+    b = {0: [1, 0, 0, 0, 1], 1: [1, 0, 1, 1, 0], 3: [1, 1, 1, 1, 1]}  # seeds 2 / 3 are not shared
+    d = stats.paired_difference(a, b)
+    assert d.seeds == 2
+    assert d.mean == pytest.approx((2 / 5 + 1 / 5) / 2)
+    assert d.se == pytest.approx(abs(2 / 5 - 1 / 5) / 2)  # s/√2 for two values = |x − y| / 2
     with pytest.raises(ValueError, match="same episodes"):
         stats.paired_difference({0: [1, 0]}, {0: [1, 0, 1]})
 
 
-def test_task_average_interval():
-    a = {0: np.ones(50), 1: np.ones(50)}
-    b = {0: np.r_[np.ones(10), np.zeros(40)], 1: np.r_[np.ones(20), np.zeros(30)]}
-    iv = stats.bootstrap_average([a, b, {0: [math.nan]}], resamples=4000)  # the empty task is left out
-    assert iv.mean == pytest.approx((1.0 + 0.3) / 2)
-    assert iv.low < iv.mean < iv.high and iv.high <= 1.0
+@pytest.mark.parametrize("b, c, p", [(4, 0, 2 / 16), (0, 0, 1.0), (3, 3, 1.0), (1, 0, 1.0), (6, 1, 16 / 128),
+                                     (10, 2, 2 * sum(math.comb(12, i) for i in range(3)) / 4096)])
+def test_mcnemar_by_hand(b, c, p):
+    """Exact two-sided binomial p on the discordant pairs, clamped at 1 (b = c and one discordant pair)."""
+    a_out = {0: np.r_[np.ones(b), np.zeros(c), np.ones(5)]}
+    b_out = {0: np.r_[np.zeros(b), np.ones(c), np.ones(5)]}
+    assert stats.mcnemar_exact(a_out, b_out) == (b, c, pytest.approx(p))
+
+
+def test_sign_flip_p_by_hand():
+    """Three positive seed differences of one task: only all-plus and all-minus reach |mean|, so p = 2/8; two tasks
+    of (1, 2) and (3,): the statistic is (1.5 + 3)/2 and only the 2 patterns flipping all signs together (and none)
+    reach it, among 8."""
+    assert stats.sign_flip_p([{0: [0.1], 1: [0.2], 2: [0.3]}]) == pytest.approx(2 / 8)
+    assert stats.sign_flip_p([{0: [1.0], 1: [2.0]}, {0: [3.0]}]) == pytest.approx(2 / 8)
+    # a difference of zero on every seed: every pattern ties, p = 1
+    assert stats.sign_flip_p([{0: [0.0], 1: [0.0]}]) == 1.0
+
+
+def test_verdict_follows_the_interval():
+    assert stats.verdict(stats.Estimate(0.1, 0.02, 0.2)) == "wins"
+    assert stats.verdict(stats.Estimate(-0.1, -0.2, -0.01)) == "loses"
+    assert stats.verdict(stats.Estimate(0.1, -0.02, 0.2)) == "ties"
+
+
+def simulate_coverage(seeds, episodes, seed_sd, p, reps=400, rng_seed=0):
+    """Fraction of simulated cells whose 95 % interval holds the true mean success: per seed a success rate drawn
+    around ``p`` with sd ``seed_sd`` (clipped to [0, 1]: the network), then ``episodes`` Bernoulli episodes."""
+    rng = np.random.default_rng(rng_seed)
+    truth = np.clip(p + np.random.default_rng(1).normal(0, seed_sd, 400_000), 0, 1).mean()
+    hits = 0
+    for _ in range(reps):
+        rates = np.clip(p + rng.normal(0, seed_sd, seeds), 0, 1)
+        groups = {s: (rng.random(episodes) < r).astype(float) for s, r in enumerate(rates)}
+        est = stats.seed_mean(groups, bounds=(0.0, 1.0))
+        hits += est.low <= truth <= est.high
+    return hits / reps
+
+
+# Tolerance: 400 simulated cells give coverage with a standard error of √(0.95 · 0.05 / 400) = 1.1 points; the
+# interval passes within ±3.5 points (3 standard errors) of the nominal 95 %.
+@pytest.mark.parametrize("seeds, episodes, seed_sd, p", [(3, 20, 0.15, 0.5), (3, 100, 0.10, 0.8),
+                                                         (3, 100, 0.0, 0.5), (5, 100, 0.05, 0.5)])
+def test_interval_covers_at_the_nominal_level(seeds, episodes, seed_sd, p):
+    coverage = simulate_coverage(seeds, episodes, seed_sd, p)
+    assert abs(coverage - 0.95) <= 0.035, coverage
+
+
+def test_paired_average_covers_a_known_effect():
+    """Four tasks × 3 seeds of paired differences with per-task effects and a seed effect on each network: the
+    Welch interval of the task average covers the true average effect at about 95 %."""
+    rng = np.random.default_rng(3)
+    effects, base = np.array([-0.2, 0.2, 0.02, 0.05]), np.array([0.8, 0.4, 0.9, 0.1])
+    big = np.random.default_rng(4)  # the true average effect, clipping included, by a large simulation
+    q = np.clip(base[:, None] + big.normal(0, 0.08, (4, 200_000)), 0.02, 0.98)
+    truth = np.mean(np.clip(q + effects[:, None] + big.normal(0, 0.05, q.shape), 0, 1) - q)
+    hits, reps = 0, 300
+    for _ in range(reps):
+        tasks = []
+        for e, q in zip(effects, base):
+            groups = {}
+            for s in range(3):
+                q_s = np.clip(q + rng.normal(0, 0.08), 0.02, 0.98)
+                new = rng.random(100) < np.clip(q_s + e + rng.normal(0, 0.05), 0, 1)
+                old = rng.random(100) < q_s
+                groups[s] = new.astype(float) - old
+            tasks.append(groups)
+        est = stats.average(tasks)
+        hits += est.low <= truth <= est.high
+    assert abs(hits / reps - 0.95) <= 0.04, hits / reps

@@ -1,97 +1,158 @@
-"""Statistics of evaluation outcomes: hierarchical bootstrap intervals over seeds × episodes, paired comparisons on
-shared initial states, and the exact McNemar test.
+"""Statistics of evaluation outcomes whose unit is the trained network (results/PROTOCOL.md v2).
 
-Outcomes come per seed: ``{seed: (E,) values}`` (success as 0/1, or steps). The interval of a column's mean
-resamples the seeds with replacement, then the episodes within each resampled seed, and takes the mean over all
-resampled episodes of the seed means; paired comparisons resample (seed, episode) pairs the same way, so both
-columns keep their shared initial states. Every function is deterministic given its ``seed`` (default 0).
+Outcomes come per seed (one trained network a seed): ``{seed: (E,) values}`` (success as 0/1, steps, or the
+per-episode differences of two columns on the same initial states). A seed contributes ONE value, the mean over
+its episodes; a cell is the mean of its S seed values with a t interval over seeds,
+
+    mean ± t(1 − α/2, S − 1) · s / √S,
+
+and its p is the two-sided t test of that mean against 0. When all S seed values are equal (s = 0), the
+episode-level standard error √(Σ_s v_s / E_s) / S replaces s / √S, so that three equal seeds never give a zero-width
+interval. An average over tasks is the mean of the task means, with standard error √(Σ_t SE_t²) / T and
+Welch–Satterthwaite degrees of freedom. ``sign_flip_p`` is the exact permutation test over the (task, seed)
+differences, and ``mcnemar_exact`` the episode-level test (it treats every episode as independent: a column, not
+the verdict).
+
+Why not the version-1 hierarchical bootstrap (seeds, then episodes, percentile interval): with 3 seeds it covered
+81–89 % for a nominal 95 % when seeds differ and 98–99 % when they do not; the t interval over seeds covers
+94–96 % in both (``tests/test_stats.py`` measures it).
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import Mapping, NamedTuple, Sequence
 
 import numpy as np
+from scipy import stats as sps
 
-RESAMPLES = 10_000
+LEVEL = 0.95
 
 
-class Interval(NamedTuple):
-    """A point estimate and its percentile bootstrap interval."""
+class Estimate(NamedTuple):
+    """A mean over trained networks: its ``level`` interval, the two-sided p of the t test against 0, the degrees
+    of freedom and the number of seeds (summed over tasks for an average). NaN interval and p with one seed."""
 
     mean: float
     low: float
     high: float
+    p: float = math.nan
+    df: float = math.nan
+    seeds: int = 0
+    se: float = math.nan
+
+
+NAN = Estimate(math.nan, math.nan, math.nan)
 
 
 def _as_groups(groups: Mapping[int, Sequence[float]] | Sequence[Sequence[float]]) -> list[np.ndarray]:
+    """Per-seed finite values (non-finite ones dropped: the steps of failed episodes); seeds without any left out."""
     items = groups.values() if isinstance(groups, Mapping) else groups
     out = [np.asarray(g, np.float64).ravel() for g in items]
     out = [g[np.isfinite(g)] for g in out]
     return [g for g in out if g.size]
 
 
-def _resampled_means(groups: list[np.ndarray], resamples: int, rng: np.random.Generator) -> np.ndarray:
-    """(resamples,) means of the hierarchical resamples: S seed slots drawn with replacement, then for every slot
-    its seed's episodes drawn with replacement, independently of the other slots."""
-    s = len(groups)
-    picks = rng.integers(0, s, size=(resamples, s))  # the seed of every slot
-    slot_means = np.zeros((resamples, s))
-    for j, g in enumerate(groups):  # every slot's episode resample, as if it had drawn seed j
-        idx = rng.integers(0, g.size, size=(resamples, s, g.size))
-        slot_means += np.where(picks == j, g[idx].mean(axis=2), 0.0)
-    return slot_means.mean(axis=1)
+def seed_values(groups) -> np.ndarray:
+    """(S,) the mean over each seed's episodes: one value per trained network."""
+    return np.asarray([g.mean() for g in _as_groups(groups)], np.float64)
 
 
-def bootstrap_mean(groups, *, level: float = 0.95, resamples: int = RESAMPLES, seed: int = 0) -> Interval:
-    """The mean over seeds of the per-seed means, with a hierarchical bootstrap interval (seeds, then episodes).
+def _from_se(mean: float, se: float, df: float, seeds: int, level: float,
+             bounds: tuple[float, float] | None = None) -> Estimate:
+    if not (df > 0 and np.isfinite(se)):
+        return Estimate(mean, math.nan, math.nan, math.nan, df, seeds, se)
+    half = float(sps.t.ppf(0.5 + level / 2.0, df)) * se
+    if se > 0:
+        p = float(2.0 * sps.t.sf(abs(mean) / se, df))
+    else:
+        p = 1.0 if mean == 0 else 0.0
+    low, high = mean - half, mean + half
+    if bounds is not None:  # the quantity's own range (a rate in [0, 1]): the interval never claims beyond it
+        low, high = max(low, bounds[0]), min(high, bounds[1])
+    return Estimate(mean, low, high, p, df, seeds, se)
 
-    ``groups``: ``{seed: (E,) values}`` or a list of per-seed arrays; non-finite values are dropped (e.g. the steps
-    of failed episodes). NaN interval when there are no values; a single value gives a zero-width interval.
-    """
+
+def seed_mean(groups, *, level: float = LEVEL, bounds: tuple[float, float] | None = None) -> Estimate:
+    """The mean over seeds of the per-seed means, with the t interval over seeds and the t test against 0.
+
+    ``groups``: ``{seed: (E,) values}`` or a list of per-seed arrays (non-finite values dropped). One seed: the
+    point only (no interval, no p); none: NaN. ``bounds``: the range of the quantity (e.g. (0, 1) for a success
+    rate, (−1, 1) for a difference of two), to which the interval is clipped."""
     g = _as_groups(groups)
     if not g:
-        return Interval(math.nan, math.nan, math.nan)
-    point = float(np.mean([x.mean() for x in g]))
-    if len(g) == 1 and g[0].size == 1:
-        return Interval(point, point, point)
-    boot = _resampled_means(g, resamples, np.random.default_rng(seed))
-    a = (1.0 - level) / 2.0
-    return Interval(point, float(np.quantile(boot, a)), float(np.quantile(boot, 1.0 - a)))
+        return NAN
+    v = np.asarray([x.mean() for x in g])
+    s, mean = len(g), float(v.mean())
+    if s == 1:
+        return Estimate(mean, math.nan, math.nan, math.nan, 0.0, 1, math.nan)
+    se = float(v.std(ddof=1) / math.sqrt(s))
+    if se == 0.0:  # equal seed values: the episode-level standard error instead of a zero-width interval
+        se = math.sqrt(sum(x.var(ddof=1) / x.size for x in g if x.size > 1)) / s
+    return _from_se(mean, se, s - 1.0, s, level, bounds)
 
 
-def bootstrap_average(tasks: Sequence, *, level: float = 0.95, resamples: int = RESAMPLES,
-                      seed: int = 0) -> Interval:
-    """The mean over tasks of each task's ``bootstrap_mean`` point, with an interval from resampling every task's
-    seeds and episodes independently (``tasks``: one ``groups`` per task; tasks without values are left out)."""
-    per_task = [g for g in (_as_groups(t) for t in tasks) if g]
+def average(tasks: Sequence, *, level: float = LEVEL, bounds: tuple[float, float] | None = None) -> Estimate:
+    """The mean over tasks of each task's ``seed_mean``: standard error √(Σ SE_t²)/T, Welch–Satterthwaite degrees
+    of freedom (``tasks``: one ``groups`` per task; a task without values is left out)."""
+    per_task = [seed_mean(t, level=level) for t in tasks]
+    per_task = [e for e in per_task if np.isfinite(e.mean)]
     if not per_task:
-        return Interval(math.nan, math.nan, math.nan)
-    rng = np.random.default_rng(seed)
-    point = float(np.mean([np.mean([x.mean() for x in g]) for g in per_task]))
-    boot = np.mean([_resampled_means(g, resamples, rng) for g in per_task], axis=0)
-    a = (1.0 - level) / 2.0
-    return Interval(point, float(np.quantile(boot, a)), float(np.quantile(boot, 1.0 - a)))
+        return NAN
+    n = len(per_task)
+    mean = float(np.mean([e.mean for e in per_task]))
+    seeds = sum(e.seeds for e in per_task)
+    if any(e.df <= 0 or not np.isfinite(e.se) for e in per_task):
+        return Estimate(mean, math.nan, math.nan, math.nan, 0.0, seeds, math.nan)
+    var = [e.se ** 2 for e in per_task]
+    se = math.sqrt(sum(var)) / n
+    denominator = sum(v ** 2 / e.df for v, e in zip(var, per_task))
+    df = sum(var) ** 2 / denominator if denominator > 0 else float(sum(e.df for e in per_task))
+    return _from_se(mean, se, df, seeds, level, bounds)
 
 
-def paired_difference(a: Mapping[int, Sequence[float]], b: Mapping[int, Sequence[float]], *, level: float = 0.95,
-                      resamples: int = RESAMPLES, seed: int = 0) -> Interval:
-    """Mean of ``a − b`` over the (seed, episode) pairs the two columns share (seeds in both, episodes index-aligned:
-    the same initial states), with the hierarchical bootstrap interval of that mean."""
-    shared = sorted(set(a) & set(b))
-    diffs = []
-    for s in shared:
+def paired_groups(a: Mapping[int, Sequence[float]], b: Mapping[int, Sequence[float]]) -> dict[int, np.ndarray]:
+    """Per seed both columns have: the per-episode differences ``a − b`` (episodes index-aligned: the same initial
+    states)."""
+    out = {}
+    for s in sorted(set(a) & set(b)):
         x, y = np.asarray(a[s], np.float64), np.asarray(b[s], np.float64)
         if x.shape != y.shape:
             raise ValueError(f"seed {s}: paired outcomes need the same episodes, got {x.shape} and {y.shape}")
-        diffs.append(x - y)
-    return bootstrap_mean(diffs, level=level, resamples=resamples, seed=seed)
+        out[s] = x - y
+    return out
 
 
-def mcnemar_exact(a: Mapping[int, Sequence[bool]], b: Mapping[int, Sequence[bool]]) -> tuple[int, int, float]:
+def paired_difference(a, b, *, level: float = LEVEL, bounds: tuple[float, float] | None = None) -> Estimate:
+    """``seed_mean`` of the per-episode differences ``a − b`` over the seeds both columns have."""
+    return seed_mean(paired_groups(a, b), level=level, bounds=bounds)
+
+
+def sign_flip_p(tasks: Sequence, *, max_exact: int = 16, resamples: int = 100_000, seed: int = 0) -> float:
+    """Exact two-sided sign-flip permutation p of the mean over tasks of the per-task mean seed differences:
+    under the null every (task, seed) difference is as likely negated; all 2^n sign patterns when n ≤ ``max_exact``
+    (n = 12 for 4 tasks × 3 seeds: the smallest possible p is 2/4096), else ``resamples`` random ones."""
+    values = [seed_values(t) for t in tasks]
+    values = [v for v in values if v.size]
+    if not values:
+        return math.nan
+    flat = np.concatenate(values)
+    weights = np.concatenate([np.full(v.size, 1.0 / (v.size * len(values))) for v in values])
+    observed = abs(float(np.sum(weights * flat)))
+    n = flat.size
+    if n <= max_exact:
+        signs = np.array(list(itertools.product((1.0, -1.0), repeat=n)))
+    else:
+        signs = np.random.default_rng(seed).choice((1.0, -1.0), size=(resamples, n))
+    stats = np.abs(signs @ (weights * flat))
+    return float(np.mean(stats >= observed - 1e-12))
+
+
+def mcnemar_exact(a: Mapping, b: Mapping) -> tuple[int, int, float]:
     """Exact two-sided McNemar test of paired binary outcomes over the shared (seed, episode) pairs → (pairs where
-    only ``a`` succeeded, pairs where only ``b`` succeeded, p-value). p = 1 without discordant pairs."""
+    only ``a`` succeeded, pairs where only ``b`` succeeded, p-value). p = 1 without discordant pairs. Episode-level:
+    it treats every episode as independent, whatever network it came from."""
     only_a = only_b = 0
     for s in sorted(set(a) & set(b)):
         x, y = np.asarray(a[s], bool), np.asarray(b[s], bool)
@@ -105,8 +166,9 @@ def mcnemar_exact(a: Mapping[int, Sequence[bool]], b: Mapping[int, Sequence[bool
     return only_a, only_b, min(1.0, 2.0 * tail)
 
 
-def verdict(diff: Interval) -> str:
-    """'wins' / 'loses' when the paired interval excludes 0, 'ties' otherwise (the protocol's wording)."""
+def verdict(diff: Estimate) -> str:
+    """'wins' / 'loses' when the paired interval excludes 0 (the t test's p < 1 − level), 'ties' otherwise, '–'
+    without an interval (one seed)."""
     if not math.isfinite(diff.low):
         return "–"
     if diff.low > 0:
@@ -116,5 +178,5 @@ def verdict(diff: Interval) -> str:
     return "ties"
 
 
-__all__ = ["Interval", "RESAMPLES", "bootstrap_average", "bootstrap_mean", "mcnemar_exact", "paired_difference",
-           "verdict"]
+__all__ = ["Estimate", "LEVEL", "average", "mcnemar_exact", "paired_difference", "paired_groups", "seed_mean",
+           "seed_values", "sign_flip_p", "verdict"]

@@ -1,11 +1,12 @@
 """Cells, tables and figures from campaign records (``campaign.Campaign`` evaluations, one dict per (task, seed,
-column)): per-episode outcomes, 95 % bootstrap intervals over seeds × episodes, paired comparisons on the shared
-initial states, the cost of the runs, markdown tables and bar charts. Pure functions of the records; ``tables``
-builds the paper's tables with them.
+column)): per-episode outcomes, 95 % t intervals over seeds (one value per trained network, ``evaluation.stats``),
+paired comparisons on the shared initial states with the seed-level and episode-level tests, the cost of the runs,
+markdown tables and bar charts. Pure functions of the records; ``tables`` builds the paper's tables with them.
 """
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -67,14 +68,18 @@ def outcomes(records: list[dict], metric: str, seeds, **match) -> dict[int, np.n
     return out
 
 
-def interval_text(iv: stats.Interval, scale: float = 1.0, digits: int = 1, signed: bool = False) -> str:
-    """'m [lo, hi]' (a 95 % bootstrap interval; '+m [+lo, +hi]' with ``signed``, for differences), 'm' when it has
-    no width, '–' when undefined."""
+RATE_BOUNDS = (0.0, 1.0)  # a success rate's range: its intervals are clipped to it
+DIFF_BOUNDS = (-1.0, 1.0)  # a difference of two success rates
+
+
+def interval_text(iv: stats.Estimate, scale: float = 1.0, digits: int = 1, signed: bool = False) -> str:
+    """'m [lo, hi]' (a 95 % interval; '+m [+lo, +hi]' with ``signed``, for differences), 'm' when it has no width
+    or none (one seed), '–' when undefined."""
     if not np.isfinite(iv.mean):
         return "–"
-    m, lo, hi = (x * scale for x in iv)
+    m, lo, hi = (x * scale for x in (iv.mean, iv.low, iv.high))
     fmt = f"{'+' if signed else ''}.{digits}f"
-    if lo == hi:
+    if lo == hi or not (np.isfinite(lo) and np.isfinite(hi)):
         return f"{m:{fmt}}"
     return f"{m:{fmt}} [{lo:{fmt}}, {hi:{fmt}}]"
 
@@ -84,7 +89,8 @@ def ci(records: list[dict], metric: str, seeds, tasks, scale: float = 1.0, **mat
     groups = [outcomes(records, metric, seeds, task=t, **match) for t in tasks]
     if len(groups) > 1 and not all(groups):
         return "–"  # an average over some of the tasks is not the tasks' average
-    iv = stats.bootstrap_mean(groups[0]) if len(groups) == 1 else stats.bootstrap_average(groups)
+    bounds = RATE_BOUNDS if metric == "success_rate" else None
+    iv = stats.seed_mean(groups[0], bounds=bounds) if len(groups) == 1 else stats.average(groups, bounds=bounds)
     return interval_text(iv, scale)
 
 
@@ -94,62 +100,84 @@ def check_one_network(records: list[dict], seeds, task: str, new: str, base: str
     for s in seeds:
         a, b = _matching(records, s, {"task": task, "column": new}), _matching(records, s, {"task": task,
                                                                                            "column": base})
-        if a and b and a.get("run") == b.get("run") and not same_network(a.get("network"), b.get("network")):
+        if (a and b and a.get("run") and a.get("run") == b.get("run") and (a.get("network") or b.get("network"))
+                and not same_network(a.get("network"), b.get("network"))):
             raise ValueError(f"{a.get('run')}: '{new}' and '{base}' were evaluated on different networks "
                              f"({a.get('network')} vs {b.get('network')}); re-evaluate the run so that its record "
                              f"holds one network")
 
 
 class Paired(NamedTuple):
-    """A paired comparison of two columns' success on the shared initial states."""
+    """A paired comparison of two columns on the shared initial states (success, or another metric)."""
 
-    diff: stats.Interval  # new − base success (a fraction), its hierarchical bootstrap 95 % interval
-    p: float  # the exact McNemar test's two-sided p
+    diff: stats.Estimate  # new − base (a fraction for success): mean over seeds (tasks), t interval, seed-level p
+    mcnemar_p: float  # the exact McNemar test's two-sided p over the (seed, episode) pairs: episode-level
+    sign_flip_p: float  # exact sign-flip permutation p over the (task, seed) differences
+    per_task: tuple  # per task: its ``stats.Estimate`` (for leave-one-task-out lines)
+
+    @property
+    def p(self) -> float:
+        """The verdict's p: the seed-level t test."""
+        return self.diff.p
 
 
-def paired(records: list[dict], seeds, tasks, new: str, base: str) -> Paired | None:
-    """``new`` − ``base`` success pooled over ``tasks`` (each task's seeds both columns have, episode by episode);
-    None while a task has no pair."""
+def paired(records: list[dict], seeds, tasks, new: str, base: str, metric: str = "success_rate") -> Paired | None:
+    """``new`` − ``base`` pooled over ``tasks`` (each task's seeds both columns have, episode by episode; for
+    ``mean_steps_success`` the episodes both succeeded in); None while a task has no pair."""
     for t in tasks:
         check_one_network(records, seeds, t, new, base)
-    a = [outcomes(records, "success_rate", seeds, task=t, column=new) for t in tasks]
-    b = [outcomes(records, "success_rate", seeds, task=t, column=base) for t in tasks]
+    a = [outcomes(records, metric, seeds, task=t, column=new) for t in tasks]
+    b = [outcomes(records, metric, seeds, task=t, column=base) for t in tasks]
     diffs = []
     for x, y in zip(a, b):
         shared = sorted(set(x) & set(y))
         if shared and all(x[s].size == y[s].size > 1 for s in shared):
-            diffs.append({s: x[s] - y[s] for s in shared})
+            diffs.append(stats.paired_groups({s: x[s] for s in shared}, {s: y[s] for s in shared}))
     if len(diffs) < len(tasks):  # a task without a pair: no pooled comparison over these tasks yet
         return None
-    iv = stats.bootstrap_mean(diffs[0]) if len(diffs) == 1 else stats.bootstrap_average(diffs)
-    pooled_a = {(i, s): v for i, x in enumerate(a) for s, v in x.items()}
-    pooled_b = {(i, s): v for i, y in enumerate(b) for s, v in y.items()}
-    _, _, p = stats.mcnemar_exact({k: v > 0 for k, v in pooled_a.items()}, {k: v > 0 for k, v in pooled_b.items()})
-    return Paired(iv, p)
-
-
-# A verdict (interval excluding 0) that the exact McNemar test does not back at this level is marked FRAGILE: with
-# few discordant episodes, all one way, the percentile bootstrap's interval can exclude 0 while p is large.
-MCNEMAR_ALPHA = 0.05
-FRAGILE = "†"
-FRAGILE_NOTE = (f"{FRAGILE}: the interval excludes 0 but the exact McNemar p ≥ {MCNEMAR_ALPHA:g} (few discordant "
-                "episodes); the protocol's verdict stands, read it as weak.")
+    bounds = DIFF_BOUNDS if metric == "success_rate" else None
+    per_task = tuple(stats.seed_mean(d, bounds=bounds) for d in diffs)
+    iv = per_task[0] if len(diffs) == 1 else stats.average(diffs, bounds=bounds)
+    p = math.nan
+    if metric == "success_rate":
+        pooled_a = {(i, s): v for i, x in enumerate(a) for s, v in x.items()}
+        pooled_b = {(i, s): v for i, y in enumerate(b) for s, v in y.items()}
+        _, _, p = stats.mcnemar_exact({k: v > 0 for k, v in pooled_a.items()},
+                                      {k: v > 0 for k, v in pooled_b.items()})
+    return Paired(iv, p, stats.sign_flip_p(diffs), per_task)
 
 
 def verdict_text(c: Paired) -> str:
-    """The protocol's verdict of a paired comparison ('wins' / 'ties' / 'loses'), marked FRAGILE when McNemar's p
-    does not back it."""
-    v = stats.verdict(c.diff)
-    return v + FRAGILE if v in ("wins", "loses") and c.p >= MCNEMAR_ALPHA else v
+    """The protocol's verdict of a paired comparison: 'wins' / 'ties' / 'loses' (the seed-level interval)."""
+    return stats.verdict(c.diff)
+
+
+def p_text(p: float) -> str:
+    return "–" if not np.isfinite(p) else f"{p:.2g}"
 
 
 def paired_cell(records: list[dict], seeds, tasks, new: str, base: str) -> str:
     """``new`` − ``base`` success in points on the shared initial states: 'Δ [lo, hi], p=… (wins / ties / loses)'
-    with the hierarchical bootstrap interval and the exact McNemar test, pooled over ``tasks``; '–' without a pair."""
+    with the t interval over seeds and the seed-level t test's p, pooled over ``tasks``; '–' without a pair."""
     c = paired(records, seeds, tasks, new, base)
     if c is None:
         return "–"
-    return f"{interval_text(c.diff, 100.0, signed=True)}, p={c.p:.2g} ({verdict_text(c)})"
+    if not np.isfinite(c.p):
+        return f"{interval_text(c.diff, 100.0, signed=True)} ({c.diff.seeds} seed: no test)"
+    return f"{interval_text(c.diff, 100.0, signed=True)}, p={p_text(c.p)} ({verdict_text(c)})"
+
+
+def leave_one_out(records: list[dict], seeds, tasks, new: str, base: str, scale: float = 100.0,
+                  metric: str = "success_rate") -> str:
+    """The pooled comparison without each task in turn: 'w/o press_button +2.7 [lo, hi]; w/o ...'."""
+    if len(tasks) < 3:
+        return "–"
+    parts = []
+    for t in tasks:
+        c = paired(records, seeds, [x for x in tasks if x != t], new, base, metric)
+        if c is not None:
+            parts.append(f"w/o {t} {interval_text(c.diff, scale, signed=True)} ({verdict_text(c)})")
+    return "; ".join(parts) or "–"
 
 
 def cost_note(records: list[dict]) -> str:
@@ -166,9 +194,9 @@ def cost_note(records: list[dict]) -> str:
 
 
 def bar_figure(path: str, groups: list[str], panels: list[tuple[str, dict[str, list[dict]]]], title: str,
-               scale: float = 1.0) -> str:
+               scale: float = 1.0, bounds: list | None = None) -> str:
     """Grouped bar chart(s): per panel (ylabel, {series: per-group per-seed outcomes}), the mean with its 95 %
-    bootstrap interval as the error bar."""
+    interval over seeds as the error bar (clipped to the panel's ``bounds`` entry, e.g. (0, 1) for success)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -176,11 +204,12 @@ def bar_figure(path: str, groups: list[str], panels: list[tuple[str, dict[str, l
 
     fig, axes = plt.subplots(1, len(panels), figsize=(max(5.0, 1.3 * len(groups) + 2.5) * len(panels), 3.6),
                              squeeze=False)
-    for ax, (ylabel, series) in zip(axes[0], panels):
+    for i_panel, (ax, (ylabel, series)) in enumerate(zip(axes[0], panels)):
+        panel_bounds = bounds[i_panel] if bounds else None
         width = 0.8 / max(len(series), 1)
         x = np.arange(len(groups))
         for i, (name, per_group) in enumerate(series.items()):
-            ivs = [stats.bootstrap_mean(g, resamples=2000) for g in per_group]
+            ivs = [stats.seed_mean(g, bounds=panel_bounds) for g in per_group]
             means = np.array([iv.mean for iv in ivs]) * scale
             err = np.array([[iv.mean - iv.low, iv.high - iv.mean] for iv in ivs]).T * scale
             ax.bar(x + (i - (len(series) - 1) / 2) * width, means, width, yerr=np.nan_to_num(err), capsize=2,
@@ -202,7 +231,7 @@ def relative_gain(base: float, new: float) -> str:
 
 def task_mean(records, metric, seeds, tasks, column) -> float:
     groups = [outcomes(records, metric, seeds, task=t, column=column) for t in tasks]
-    return stats.bootstrap_average(groups, resamples=1).mean if all(groups) else float("nan")
+    return stats.average(groups).mean if all(groups) else float("nan")
 
 
 def stride_cell(records, seeds, **match) -> str:

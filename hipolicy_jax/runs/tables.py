@@ -26,9 +26,9 @@ from hipolicy_jax.runs.campaign import (README_BEGIN, README_END, Campaign, Colu
                                         choose_low_regime, parse_until, pilot_candidates, readme_section, schedule,
                                         shard, update_readme)
 from hipolicy_jax.runs.lock import RunLockedError
-from hipolicy_jax.runs.report import (FRAGILE, FRAGILE_NOTE, bar_figure, changes_text, ci, cost_note, interval_text,
-                                      markdown_table, outcomes, paired, paired_cell, relative_gain, stride_cell,
-                                      task_mean, verdict_text)
+from hipolicy_jax.runs.report import (RATE_BOUNDS, bar_figure, changes_text, ci, cost_note, interval_text, leave_one_out,
+                                      markdown_table, outcomes, p_text, paired, paired_cell, relative_gain,
+                                      stride_cell, task_mean, verdict_text)
 from hipolicy_jax.runs.store import read_json, write_json
 from hipolicy_jax.runs.train import RunConfig, cpu_cores
 
@@ -255,7 +255,7 @@ def results_header(title: str, args: PaperArgs, notes: list[str]) -> str:
              f"Protocol: `results/PROTOCOL.md`. Regime `{args.regime}`{regime_text(args)}; seeds {', '.join(str(s) for s in args.seeds)}"
              + (f" (single-frequency baselines also {', '.join(map(str, args.baseline_seeds))})"
                 if args.baseline_seeds else "") + ". "
-             f"Cells: mean over seeds with its 95 % bootstrap interval over seeds × episodes. Budget "
+             f"Cells: mean over seeds (one value per trained network) with its 95 % t interval over seeds. Budget "
              f"`{args.budget}`: {b.note}; evaluation episodes: {eval_episodes(args)} per seed, the same initial "
              f"states for every column."]
     lines += [""] + [f"- {n}" for n in notes] if notes else []
@@ -287,7 +287,8 @@ def success_by_task_figure(args: PaperArgs, records: list[dict], labels: list[st
     def figure(path):
         series = {c: [outcomes(records, "success_rate", table_seeds(args), task=t, column=c) for t in args.tasks]
                   for c in labels}
-        return bar_figure(path, list(args.tasks), [("success rate (%)", series)], title, scale=100.0)
+        return bar_figure(path, list(args.tasks), [("success rate (%)", series)], title, scale=100.0,
+                          bounds=[RATE_BOUNDS])
 
     return figure
 
@@ -352,8 +353,10 @@ def main_columns(args: MainArgs) -> list[Column]:
     return columns
 
 
-PAIRED_NOTE = ("Paired columns: the per-episode success difference on the shared initial states (seeds both columns "
-               "have), its 95 % bootstrap interval and the exact McNemar p; wins / loses when the interval excludes 0.")
+PAIRED_NOTE = ("Paired columns: per seed both columns have, the mean per-episode success difference on the shared "
+               "initial states; their mean with its 95 % t interval over seeds and the seed-level t test's p "
+               "(protocol v2); wins / loses when the interval excludes 0 (p < 0.05). The episode-level McNemar p is "
+               "in findings.md.")
 
 
 def main_table(args: MainArgs) -> str:
@@ -369,7 +372,7 @@ def main_table(args: MainArgs) -> str:
                            rows)
     notes = ["Success rate (%) with entropy-guided execution, thresholds calibrated on held-out demos "
              "(10th / 70th percentiles); relative gain over the baseline in the average rows.",
-             PAIRED_NOTE, FRAGILE_NOTE,
+             PAIRED_NOTE,
              "DP = one stride (single-frequency Diffusion Policy); DP3 = point-cloud encoder, sample prediction."]
     if "pointcloud" in obs_types:
         pc = train_args(args, args.tasks[0], "pointcloud", (), args.seeds[0]).policy.encoder
@@ -393,7 +396,7 @@ def ablation_table(args: AblationArgs) -> str:
     table = markdown_table(["Task", *labels, "Hier. − w/o Hier. (points)"], rows)
     notes = ["Success rate (%) with entropy-guided execution. Condition: every frequency segment conditioned on its "
              "own frequency's observations (Hier.), or all on the lowest (Low) / highest (High); w/o Fusion: no "
-             "CLS-token attention; w/o Hier.: one stride (DP).", PAIRED_NOTE, FRAGILE_NOTE]
+             "CLS-token attention; w/o Hier.: one stride (DP).", PAIRED_NOTE]
 
     figure = success_by_task_figure(args, records, labels, "ablation")
     return write_results(args, "Ablation: success rate (%)", notes, table, records, figure)
@@ -433,7 +436,7 @@ def execution_table(args: ExecutionArgs) -> str:
              "ensembling (a decision at every step, weights exp(-0.01 i)); DP+AAC: the same DP run with adaptive "
              "action chunking (k of L_c actions, k from the entropy curve of the N samples); w/o EG: the HiPolicy "
              "run always at stride 1; HiPolicy: entropy-guided execution with the calibrated thresholds.",
-             "Strides: share of HiPolicy's decisions executed at stride 1/2/3.", PAIRED_NOTE, FRAGILE_NOTE]
+             "Strides: share of HiPolicy's decisions executed at stride 1/2/3.", PAIRED_NOTE]
 
     def figure(path):
         import matplotlib
@@ -445,10 +448,8 @@ def execution_table(args: ExecutionArgs) -> str:
         for i, t in enumerate(args.tasks):
             for j, c in enumerate(labels):
                 seeds = table_seeds(args)
-                sr = stats.bootstrap_mean(outcomes(records, "success_rate", seeds, task=t, column=c),
-                                          resamples=1).mean
-                steps = stats.bootstrap_mean(outcomes(records, "mean_steps_success", seeds, task=t, column=c),
-                                             resamples=1).mean
+                sr = stats.seed_mean(outcomes(records, "success_rate", seeds, task=t, column=c)).mean
+                steps = stats.seed_mean(outcomes(records, "mean_steps_success", seeds, task=t, column=c)).mean
                 ax.scatter(steps, 100 * sr, color=f"C{j}", marker="os^Dv"[i % 5], s=40,
                            label=c if i == 0 else None)
         ax.set_xlabel("steps to success (control steps, lower is faster)")
@@ -503,8 +504,8 @@ def budget_table(args: BudgetArgs) -> str:
         fig, axes = plt.subplots(1, len(args.tasks), figsize=(4.2 * len(args.tasks), 3.6), squeeze=False)
         for ax, task in zip(axes[0], args.tasks):
             for j, c in enumerate(BUDGET_COLUMNS):
-                pts = [(n, stats.bootstrap_mean(outcomes(budget_records(records, n, default), "success_rate",
-                                                         seeds, task=task, column=c.label), resamples=2000))
+                pts = [(n, stats.seed_mean(outcomes(budget_records(records, n, default), "success_rate",
+                                                    seeds, task=task, column=c.label), bounds=RATE_BOUNDS))
                        for n in args.steps]
                 pts = [(n, iv) for n, iv in pts if np.isfinite(iv.mean)]
                 if not pts:
@@ -521,7 +522,7 @@ def budget_table(args: BudgetArgs) -> str:
             ax.set_title(task, fontsize=10)
             ax.grid(alpha=0.3)
             ax.legend(fontsize=8)
-        fig.suptitle("success vs training budget (95 % intervals over seeds × episodes)", fontsize=10)
+        fig.suptitle("success vs training budget (95 % t intervals over seeds)", fontsize=10)
         fig.tight_layout()
         fig.savefig(path, dpi=110)
         plt.close(fig)
@@ -561,7 +562,8 @@ def thresholds_table(args: ThresholdsArgs) -> str:
         panels = [(ylabel, {t: [outcomes(records, metric, table_seeds(args), task=t, column=c) for c in labels]
                             for t in args.tasks})
                   for ylabel, metric, _ in PANELS]
-        return bar_figure(path, labels, panels, "threshold ablation")
+        return bar_figure(path, labels, panels, "threshold ablation",
+                          bounds=[RATE_BOUNDS if metric == "success_rate" else None for _, metric, _ in PANELS])
 
     return write_results(args, "Entropy thresholds ablation", notes, table, records, figure)
 
@@ -600,7 +602,7 @@ def hparams_table(args: HparamsArgs) -> str:
         series = {t: [outcomes(records, "success_rate", table_seeds(args), task=t, column=c.label) for c in columns]
                   for t in args.tasks}
         return bar_figure(path, [c.label for c in columns], [("success rate (%)", series)],
-                          "hyper-parameter ablation", scale=100.0)
+                          "hyper-parameter ablation", scale=100.0, bounds=[RATE_BOUNDS])
 
     return write_results(args, "Hyper-parameter ablation: success rate (%)", notes, table, records, figure)
 
@@ -721,24 +723,79 @@ def write_plan(args: "CampaignArgs", costs: list[dict]) -> str:
 
 # The paired comparisons of HiPolicy with a baseline that the findings gather: (table, new column, baseline column)
 # (the execution table's HiPolicy vs DP and the ablation's Hier. vs w/o Hier. are the main table's runs and
-# evaluations again, so they are not counted twice)
+# evaluations again, so they are not counted twice). HiPolicy vs w/o EG is the one same-network comparison: one
+# trained network, executed with and without entropy guidance.
 FINDINGS = (("main", "DP+HiPolicy", "DP"), ("main", "DP3+HiPolicy", "DP3"), ("execution", "HiPolicy", "DP+TE"),
-            ("execution", "HiPolicy", "DP+AAC"))
+            ("execution", "HiPolicy", "DP+AAC"), ("execution", "HiPolicy", "w/o EG"))
 VERDICTS = ("wins", "ties", "loses")
+
+
+def _table_json(args: PaperArgs, t: PaperArgs) -> list[dict] | None:
+    path = os.path.join(args.results, results_name(t) + ".json")
+    return read_json(path)["records"] if os.path.exists(path) else None
+
+
+def saved_groups(records: list[dict], seeds, task: str, new: str, base: str) -> dict[int, np.ndarray]:
+    """Per seed, over the episodes both columns succeeded in: (base − new steps) / mean(base steps), whose mean is
+    the fraction of ``base``'s steps to success that ``new`` saves on that network."""
+    a = outcomes(records, "mean_steps_success", seeds, task=task, column=new)
+    b = outcomes(records, "mean_steps_success", seeds, task=task, column=base)
+    shared = set(a) & set(b)
+    groups = {}
+    for s, d in stats.paired_groups({k: a[k] for k in shared}, {k: b[k] for k in shared}).items():
+        both = np.isfinite(d)
+        if both.any():
+            groups[s] = -d[both] / np.mean(b[s][both])
+    return groups
+
+
+def speed_rows(args: PaperArgs, records: list[dict], seeds, tasks) -> list[list[str]]:
+    """The paper's speed claim, same network (HiPolicy vs w/o EG), per task and on average: success of each, the
+    success cost, steps to success of each, the steps saved (%) with its interval over seeds."""
+    rows = []
+    for label, ts in [(t, [t]) for t in tasks] + ([("**Average**", list(tasks))] if len(tasks) > 1 else []):
+        cost = paired(records, seeds, ts, "HiPolicy", "w/o EG")
+        groups = [saved_groups(records, seeds, t, "HiPolicy", "w/o EG") for t in ts]
+        saved = (stats.NAN if not all(groups) else stats.seed_mean(groups[0]) if len(ts) == 1
+                 else stats.average(groups))
+        rows.append([label,
+                     ci(records, "success_rate", seeds, ts, 100.0, column="w/o EG"),
+                     ci(records, "success_rate", seeds, ts, 100.0, column="HiPolicy"),
+                     "–" if cost is None else f"{interval_text(cost.diff, 100.0, signed=True)} ({verdict_text(cost)})",
+                     ci(records, "mean_steps_success", seeds, ts, column="w/o EG"),
+                     ci(records, "mean_steps_success", seeds, ts, column="HiPolicy"),
+                     f"{interval_text(saved, 100.0, signed=True)}, p={p_text(saved.p)}"
+                     + (f" ({'faster' if saved.low > 0 else 'slower' if saved.high < 0 else 'no difference'})"
+                        if np.isfinite(saved.low) else "")])
+    return rows
 
 
 def findings_table(args: "CampaignArgs", tables: list[PaperArgs]) -> str | None:
     """``<results>/findings.md``: every paired comparison of ``FINDINGS`` in the built tables, one row each — per
-    task the success difference in points on the shared initial states with its 95 % interval and verdict, the
-    average over the table's tasks with its McNemar p, and the tasks won / tied / lost — read from the tables' JSON
-    (their records); → its path, None before any table holds a comparison."""
-    rows, tally, fragile = [], dict.fromkeys(VERDICTS, 0), 0
+    task the success difference in points on the shared initial states with its 95 % interval over seeds and
+    verdict; the average over the table's tasks with the seed-level t test's p, the exact sign-flip p, the
+    episode-level McNemar p and the average without each task in turn; the tasks won / tied / lost — then the
+    same-network speed claim (HiPolicy vs w/o EG) and, when built, the training-budget rows; read from the tables'
+    JSON (their records); → its path, None before any table holds a comparison."""
+    rows, tally = [], dict.fromkeys(VERDICTS, 0)
+    speed, budget_rows = [], []
     for t in tables:
-        path = os.path.join(args.results, results_name(t) + ".json")
-        if not os.path.exists(path):
+        records = _table_json(args, t)
+        if records is None:
             continue
-        records = read_json(path)["records"]
         labels, seeds = {c.label for c in COLUMNS[table_name(t)](t)}, table_seeds(t)
+        regime = "100 demos" if t.regime == "r100" else "Rlow"
+        if table_name(t) == "budget":
+            default = BUDGETS[t.budget].train.num_steps
+            for n in t.steps:
+                rs = budget_records(records, n, default)
+                cells = []
+                for task in args.tasks:
+                    c = paired(rs, seeds, [task], "DP+HiPolicy", "DP") if task in t.tasks else None
+                    cells.append("–" if c is None else
+                                 f"{interval_text(c.diff, 100.0, signed=True)} {verdict_text(c)}")
+                budget_rows.append([f"{n:,} steps", *cells])
+            continue
         for name, new, base in FINDINGS:
             if name != table_name(t) or not {new, base} <= labels:  # (DP3 columns: in R100's main table only)
                 continue
@@ -749,27 +806,46 @@ def findings_table(args: "CampaignArgs", tables: list[PaperArgs]) -> str | None:
                     cells.append("–")
                     continue
                 verdict = stats.verdict(c.diff)
-                counts[verdict] += 1
-                fragile += verdict_text(c).endswith(FRAGILE)
-                cells.append(f"{interval_text(c.diff, 100.0, signed=True)} {verdict_text(c)}")
+                counts[verdict] += verdict in counts
+                cells.append(f"{interval_text(c.diff, 100.0, signed=True)} {verdict}")
             for v in VERDICTS:
                 tally[v] += counts[v]
-            regime = "100 demos" if t.regime == "r100" else "Rlow"
+            avg = paired(records, seeds, list(t.tasks), new, base)
             rows.append([f"{new} vs {base}", f"{regime} ({results_name(t)})", *cells,
                          paired_cell(records, seeds, list(t.tasks), new, base),
+                         "–" if avg is None else p_text(avg.sign_flip_p),
+                         "–" if avg is None else p_text(avg.mcnemar_p),
+                         leave_one_out(records, seeds, list(t.tasks), new, base),
                          "/".join(str(counts[v]) for v in VERDICTS)])
+        if table_name(t) == "execution" and {"HiPolicy", "w/o EG"} <= labels:
+            speed.append((regime, results_name(t), speed_rows(t, records, seeds, list(t.tasks))))
     if not rows:
         return None
-    table = markdown_table(["Comparison", "Demos (table)", *args.tasks, "Average", "Tasks W/T/L"], rows)
+    table = markdown_table(["Comparison", "Demos (table)", *args.tasks, "Average (seed-level t test)",
+                            "Sign-flip p", "Episode-level McNemar p", "Leave one task out", "Tasks W/T/L"], rows)
     total = sum(tally.values())
     lines = ["# Findings: where HiPolicy wins, ties or loses", "",
-             "Each row is a paired comparison from one table: per task, the success difference (new − baseline) in "
-             "points on the shared initial states with its 95 % hierarchical bootstrap interval over seeds × "
-             "episodes; **wins** / **loses** when the interval excludes 0, else **ties**. Average: the table's tasks "
-             "pooled, with the exact McNemar p. '–': a task the comparison has no pair for yet (see "
-             "campaign_plan.md).", "",
+             "Protocol v2 (`results/PROTOCOL.md`): the unit of evidence is the trained network. Each row is a paired "
+             "comparison from one table: per task, the success difference (new − baseline) in points on the shared "
+             "initial states — per seed the mean over its 100 episodes, then the mean over seeds with its 95 % t "
+             "interval over seeds; **wins** / **loses** when the interval excludes 0 (the seed-level t test's "
+             "p < 0.05), else **ties**. Average: the mean of the task means, its t interval (Welch) and p; the exact "
+             "sign-flip p permutes the signs of the (task, seed) differences; the episode-level McNemar p treats "
+             "every episode as independent and is shown for comparison with version 1 only. Leave one task out: "
+             "the average without each task in turn. '–': no pair yet (see campaign_plan.md).", "",
              f"Over the {total} (comparison, task) cells: HiPolicy wins {tally['wins']}, ties {tally['ties']}, loses "
-             f"{tally['loses']} ({fragile} of the wins and losses marked {FRAGILE}).", "", FRAGILE_NOTE, "", table]
+             f"{tally['loses']}.", "", table]
+    for regime, name, srows in speed:
+        lines += ["", f"## Entropy-guided execution, same network: HiPolicy vs w/o EG, {regime} ({name})", "",
+                  "One trained network per seed, executed with entropy guidance (HiPolicy) and always at stride 1 "
+                  "(w/o EG) on the same initial states. The paper claims faster execution (fewer control steps) at "
+                  "a small success cost. Steps saved: per seed, 100 · mean(w/o EG − HiPolicy) / mean(w/o EG) over "
+                  "the episodes both succeeded in; mean over seeds with its t interval and p.", "",
+                  markdown_table(["Task", "w/o EG SR (%)", "HiPolicy SR (%)", "Success cost (points)",
+                                  "w/o EG steps", "HiPolicy steps", "Steps saved (%)"], srows)]
+    if budget_rows:
+        lines += ["", "## Training budget: DP+HiPolicy − DP (points) by training steps (budget.md)", "",
+                  markdown_table(["Training", *args.tasks], budget_rows)]
     out = os.path.join(args.results, "findings.md")
     with open(out, "w") as f:
         f.write("\n".join(lines) + "\n")
