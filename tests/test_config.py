@@ -88,3 +88,21 @@ def test_dict_round_trip():
     assert config_from_dict(PolicyConfig, config_to_dict(cfg)) == cfg
     inf = InferenceConfig(thresholds=(-1.0, 0.0, 1.0), percentiles=(30.0,), sampler="ddpm")
     assert config_from_dict(InferenceConfig, config_to_dict(inf)) == inf
+
+
+def test_a_delay_the_chunk_cannot_carry_fails_at_config_time():
+    """`experiments.train --inference.delay 7` with chunk length 8 fails when the config is built, naming the field
+    (a decision must be ready before the next one starts: d <= L_c // 2), through the CLI too."""
+    import subprocess
+    import sys
+
+    from hipolicy_jax.config import InferenceConfig
+    from hipolicy_jax.runs.train import RunConfig
+
+    assert RunConfig(inference=InferenceConfig(delay=4)).inference.delay == 4  # L_c 8: up to 4
+    with pytest.raises(ValueError, match=r"inference.delay: at most chunk.chunk_len // 2 = 4 .* got 7"):
+        RunConfig(inference=InferenceConfig(delay=7))
+    out = subprocess.run([sys.executable, "-m", "experiments.train", "--inference.delay", "7", "--dry-run"],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode != 0 and "inference.delay: at most chunk.chunk_len // 2 = 4" in out.stderr
+    assert "Traceback" not in out.stderr

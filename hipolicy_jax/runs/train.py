@@ -63,6 +63,10 @@ class RunConfig:
     def __post_init__(self):
         if self.task not in envs.TASKS:
             raise ValueError(f"task: must be one of {list(envs.TASKS)}, got {self.task!r}")
+        half = self.policy.chunk.chunk_len // 2
+        if self.inference.delay > half:  # the decision must be ready before the next one starts
+            raise ValueError(f"inference.delay: at most chunk.chunk_len // 2 = {half} control steps (a decision "
+                             f"must be ready before the next one starts), got {self.inference.delay}")
         enc = self.policy.encoder
         if enc.obs_type != "state" and enc.state_dims is None and not self.privileged_state:
             object.__setattr__(self, "policy", replace(self.policy, **{"encoder.state_dims": PROPRIO_DIM}))
