@@ -96,6 +96,21 @@ def test_flow_head_learns_bimodal_distribution(dataset, tmp_path):
     _check_bimodal(_bimodal_samples(res, dataset, cfg, InferenceConfig(num_samples=32, num_steps=10)), 0.95)
 
 
+def test_retraining_reproduces_the_network_fingerprint(dataset, tmp_path):
+    """The records' one-network rule relies on it: the same config trained twice on one machine gives bit-identical
+    EMA parameters, so the same SHA-256 (``runs.records``); another seed gives another network."""
+    from hipolicy_jax.runs.records import params_fingerprint
+
+    cfg = tiny_cfg()
+    train_cfg = TrainConfig(batch_size=32, num_steps=12, warmup_steps=4, log_every=4, ckpt_every=12)
+    a = fit(cfg, train_cfg, dataset, str(tmp_path / "a"), progress=False, tensorboard=False)
+    b = fit(cfg, train_cfg, dataset, str(tmp_path / "b"), progress=False, tensorboard=False)
+    c = fit(cfg, replace(train_cfg, seed=1), dataset, str(tmp_path / "c"), progress=False, tensorboard=False)
+    assert params_fingerprint(a.state.ema_params) == params_fingerprint(b.state.ema_params)
+    assert a.losses == b.losses
+    assert params_fingerprint(c.state.ema_params) != params_fingerprint(a.state.ema_params)
+
+
 def test_resume_reproduces_uninterrupted_losses(dataset, tmp_path):
     cfg = tiny_cfg()
     train_cfg = TrainConfig(batch_size=32, num_steps=24, warmup_steps=4, log_every=4, ckpt_every=8)
