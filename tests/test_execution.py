@@ -67,6 +67,37 @@ def test_chunk_and_aac_decide():
         execution.make_execution(InferenceConfig(execution="aac", num_samples=1))
 
 
+@pytest.mark.parametrize("freq_index,k", [(0, 4), (1, 3), (2, 1)])
+def test_chunk_and_aac_read_the_selected_frequency(freq_index, k):
+    """Strides (1, 2, 3), L_c = 4: AAC sizes the decision from the SELECTED frequency's segment of the N samples.
+
+    Two samples; sample 1 = sample 0 + 1 on the steps where they split, so per step var = 0 (h = ½·log ε) where they
+    agree and var = ½ (h = ½·log(πe + ε)) where they split. Segments in descending-stride order:
+      - stride 3 (index 2, chunk steps 0..3): split from step 2 on: h = (c, v, v, v), H(k) = (c, (c+v)/2,
+        (c+2v)/3, (c+3v)/4), jumps (v−c)/2 > (v−c)/6 > (v−c)/12 → k* = 1;
+      - stride 2 (index 1, chunk steps 4..7): split on step 4 only: h = (c, c, c, v), jumps (0, 0, (v−c)/4) → k* = 3;
+      - stride 1 (index 0, chunk steps 8..11): never split: H flat, no jump > 0 → k* = L_c = 4.
+    Both strategies execute sample 0's chunk at the selected frequency (``Decision.actions``) at its stride; chunk
+    execution runs all L_c = 4 of it whatever the frequency."""
+    chunk = ChunkConfig(strides=(1, 2, 3), chunk_len=4)
+    base = jnp.arange(12, dtype=jnp.float32)[:, None] * jnp.ones((1, 2))  # (M·L_c, A): action t = (t, t)
+    split = jnp.zeros(12).at[jnp.array([1, 2, 3, 7])].set(1.0)[:, None]  # where sample 1 departs from sample 0
+    samples = jnp.stack([base, base + split])  # (N=2, 12, 2)
+    segment = 2 - freq_index  # frequency index k lives in segment M−1−k
+    actions = samples[0, 4 * segment:4 * segment + 4]
+    stride = (1, 2, 3)[freq_index]
+    d = execution.Decision(chunks=samples, entropy=jnp.float32(-1.0), freq_index=jnp.int32(freq_index),
+                           stride=jnp.int32(stride), actions=actions)
+    np.testing.assert_array_equal(np.asarray(actions[:, 0]), 4 * segment + np.arange(4))  # the hand-made layout
+    out, _ = execution.ChunkExecution().decide(d, (), chunk)
+    assert int(out.num_actions) == 4 and int(out.stride) == stride
+    np.testing.assert_array_equal(np.asarray(out.actions), np.asarray(actions))
+    out, _ = execution.AdaptiveChunking().decide(d, (), chunk)
+    assert int(out.num_actions) == k and int(out.stride) == stride and float(out.entropy) == -1.0
+    executed = np.asarray(out.actions)[:int(out.num_actions), 0]
+    np.testing.assert_array_equal(executed, 4 * segment + np.arange(k))  # e.g. index 1: chunk steps 4, 5, 6
+
+
 def test_episode_loop_executes_the_decided_number_of_actions():
     """A policy that asks for 1, 2, 3, 1, 2, 3, ... actions: decisions start where the previous ones ended."""
     env = envs.make("press_button")
