@@ -58,6 +58,28 @@ def test_segment_of_picks_the_selected_stride():
     np.testing.assert_array_equal(np.asarray(out[:, 0, 0]), [1.0, 3.0])
 
 
+def test_calibrate_thresholds_are_the_percentiles_of_the_finite_entropies():
+    """``calibrate_thresholds`` = (−inf, np.percentile(finite entropies, p)..., +inf), by value: the paper's (10, 70)
+    for M = 3 (by hand on 1..5: linear interpolation at positions 0.4 and 2.8 → 1.4, 3.8), given percentiles, the
+    evenly spaced default for M = 4; NaN / ±inf entropies (N = 1 draws, overflow) are left out; ties stay strictly
+    ascending (+1e-9 per inner threshold); one frequency has nothing to select."""
+    from hipolicy_jax.evaluation.calibration import calibrate_thresholds
+    th = calibrate_thresholds(np.array([5.0, 1.0, np.nan, 4.0, 2.0, 3.0, -np.inf]), 3)
+    assert th[0] == -math.inf and th[-1] == math.inf and len(th) == 4
+    np.testing.assert_allclose(th[1:3], [1.4, 3.8], rtol=0, atol=1e-8)
+    h = np.random.default_rng(0).normal(-5.0, 0.7, size=(7, 9))  # any shape: flattened
+    for m, p, want_p in [(3, None, (10, 70)), (3, (20, 80), (20, 80)), (4, None, (25, 50, 75)),
+                         (4, (5, 50, 95), (5, 50, 95))]:
+        th = calibrate_thresholds(h, m, p)
+        assert len(th) == m + 1 and th[0] == -math.inf and th[-1] == math.inf
+        np.testing.assert_allclose(th[1:-1], np.percentile(h.ravel(), want_p), rtol=0, atol=1e-8)
+    tied = calibrate_thresholds(np.full(10, -6.0), 3)
+    assert tied[1] == pytest.approx(-6.0, abs=1e-8) and tied[1] < tied[2] == pytest.approx(-6.0, abs=1e-8)
+    assert calibrate_thresholds(h, 1) == (-math.inf, math.inf)
+    with pytest.raises(ValueError, match="no finite entropies"):
+        calibrate_thresholds(np.array([np.nan, np.nan]), 3)
+
+
 # --------------------------------------------------------------------------------------------- fake network
 class FakeNet:
     """encode: mean over the obs window; denoise: x0 = tanh(w·cond mean) + v·x_t (sample-prediction)."""
