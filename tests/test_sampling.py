@@ -186,9 +186,10 @@ def test_single_sample_skips_entropy_and_runs_highest_frequency():
                                                      ("flow", "euler", 1)])
 def test_every_head_gives_the_same_result_shapes_and_entropy_semantics(objective, sampler, steps):
     """One sampler for every head: the same ``SampleResult`` shapes; a network whose output does not depend on the
-    noisy input collapses all N samples (entropy 0.5·log ε, stride 1 with the release thresholds) for every head
-    (x0 = its output for diffusion, and for flow the Euler steps of a constant velocity u end at ε - u: N different
-    samples, so a finite entropy above the collapsed one)."""
+    noisy input collapses all N samples for diffusion (x0 = its output: entropy 0.5·log ε, stride 1 with the
+    release thresholds), while for flow the Euler steps of a constant velocity u end at ε − u, clipped to the
+    normalised range (``flow.clip_sample``): N different samples whose entropy is the closed form
+    mean 0.5·log(2πe·var + ε) of those values (near 0.5·log(2πe) ≈ 1.42 for unclipped unit noise)."""
     net = FakeNet()
     inference = InferenceConfig(num_samples=6, sampler=sampler, num_steps=steps)
     cfg = _cfg(steps=10, objective=objective)
@@ -204,7 +205,18 @@ def test_every_head_gives_the_same_result_shapes_and_entropy_semantics(objective
     if objective == "diffusion":
         np.testing.assert_allclose(h, 0.5 * math.log(1e-6), rtol=1e-5)
     else:
-        assert np.all(np.isfinite(h)) and np.all(h > 0.5 * math.log(1e-6) + 1.0)
+        # sample i starts from ε_i = normal(split(split(key, N)[i])[1], (B, T, A)) (``denoise_chain``); the velocity
+        # u = tanh(w·mean(obs)) (B,) is the same at every step, so K steps of dt = 1/K end at ε_i − u, then clipped
+        u = np.tanh(np.asarray(_obs()["state"]).mean(axis=(1, 2, 3)))
+        noise = np.stack([np.asarray(jax.random.normal(jax.random.split(k)[1], (2, 12, 2)))
+                          for k in jax.random.split(jax.random.key(0), 6)], axis=1)  # (B, N, T, A)
+        want = np.clip(noise - u[:, None, None, None], -1.0, 1.0)
+        # float32: K ≤ 4 roundings of dt·u (~1e-7 each) per action, so 1e-5 leaves two orders of magnitude
+        np.testing.assert_allclose(np.asarray(res.chunks), want, rtol=0, atol=1e-5)
+        var = want.astype(np.float64).var(axis=1, ddof=1)  # (B, T, A), unbiased over the N = 6 samples
+        # entropy: actions off by ~1e-7 move variances ≥ 0.02 by ≤ ~5e-6 relative, h ≈ 0.8..1.1 by ≤ ~3e-6: rtol 1e-5
+        np.testing.assert_allclose(h, np.mean(0.5 * np.log(2 * np.pi * np.e * var + 1e-6), axis=(1, 2)), rtol=1e-5)
+        assert np.all(h > 0.5 * math.log(1e-6) + 1.0)  # far above the collapsed samples' floor
 
 
 @pytest.mark.parametrize("objective,sampler,steps", [("diffusion", "ddpm", 10), ("diffusion", "ddim", 3),
