@@ -161,3 +161,43 @@ def test_delayed_decisions_start_every_chunk_len_minus_d_steps():
     assert res.valid.shape == (2, 4) and np.asarray(res.valid).sum(axis=1).tolist() == [4, 4]
     np.testing.assert_array_equal(np.asarray(res.start)[0], [0, 3, 6, 9])
     np.testing.assert_array_equal(np.asarray(res.executed)[0], [3, 3, 3, 1])
+
+
+@pytest.mark.parametrize("handover", ["inpaint", "naive"])
+def test_inpaint_handover_starts_the_new_chunk_on_the_committed_actions(handover, monkeypatch):
+    """Delay d = 2, L_c = 4, strides (1, 2, 3), through ``make_policy_fn`` and the real sampler (the fake network of
+    test_sampling, DDIM, N = 3): the first decision commits sample 0's C[2:4] at its selected frequency. With
+    ``handover='inpaint'`` the next decision's chunks start on exactly those d actions in every sample and at every
+    frequency; with 'naive' they are sampled freely and start elsewhere. Either way the robot runs the committed
+    actions while the decision is computed."""
+    from test_sampling import RELEASE, AffineNormalizer, FakeNet, _cfg
+
+    from hipolicy_jax.evaluation import policy as policy_lib
+
+    cfg = _cfg()  # strides (1, 2, 3), L_c = 4, sample prediction
+    inference = InferenceConfig(num_samples=3, sampler="ddim", num_steps=3, delay=2, handover=handover)
+    results, sample = [], policy_lib.sample  # every SampleResult the policy's sampler returns (it runs eagerly)
+
+    def spy(*args, **kwargs):
+        results.append(sample(*args, **kwargs))
+        return results[-1]
+
+    monkeypatch.setattr(policy_lib, "sample", spy)
+    policy_fn, init_fn = policy_lib.make_policy_fn(FakeNet(), cfg, 2, inference)
+    args = policy_lib.PolicyArgs({"w": jnp.float32(0.5), "v": jnp.float32(0.3)}, AffineNormalizer(jnp.float32(2.0)),
+                                 RELEASE)
+    span = cfg.chunk.obs_span
+    history = {"state": jnp.linspace(0.0, 1.0, span * 5, dtype=jnp.float32).reshape(span, 5)}
+    state = init_fn(None, jax.random.key(0))
+    out, state = policy_fn(history, jax.random.key(1), state, args)
+    committed = np.asarray(results[-1].actions[0, 2:4])  # sample 0 at the selected frequency, steps 2, 3
+    np.testing.assert_array_equal(np.asarray(state.pending), committed)
+    out, state = policy_fn(jax.tree.map(lambda x: x + 0.1, history), jax.random.key(2), state, args)
+    assert len(results) == 2
+    np.testing.assert_array_equal(np.asarray(out.actions[:2]), committed)  # run while the decision is computed
+    segments = np.asarray(results[-1].chunks[0]).reshape(3, 3, 4, 2)  # (N, M, L_c, A)
+    gap = np.abs(segments[:, :, :2] - committed).max(axis=-1)  # (N, M, d): every sample, frequency, prefix step
+    if handover == "inpaint":
+        assert gap.max() < 1e-5, gap  # the last renoise writes the clean prefix (float32 normalise / unnormalise)
+    else:
+        assert gap.min() > 1e-2, gap
