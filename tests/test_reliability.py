@@ -150,8 +150,9 @@ def test_checkpoint_write_failure_is_one_line_and_keeps_the_last_checkpoint(data
 
 
 def test_concurrent_demo_collection_happens_once_and_is_never_read_half_written(tmp_path, monkeypatch):
-    """Two processes (here threads) asking for one missing demo buffer: one collects, the other waits and loads it;
-    a collection cut off leaves only its temporary (removed by the next), never a dataset at the path."""
+    """Two threads asking for one missing demo buffer: one collects, the other waits and loads it; a collection cut
+    off leaves only its temporary (removed by the next), never a dataset at the path. (Processes, as a campaign's
+    shards are: ``test_concurrent_demo_collection_across_processes_happens_once``.)"""
     import threading
 
     from hipolicy_jax.config import EncoderConfig
@@ -189,6 +190,54 @@ def test_concurrent_demo_collection_happens_once_and_is_never_read_half_written(
     with pytest.raises(KeyboardInterrupt):
         demos.load_or_collect("fails", EncoderConfig(), 3, broken, progress=False)
     assert not os.path.exists(broken)
+
+
+COLLECT_RACER = """
+import json, os, sys, time
+import numpy as np
+from hipolicy_jax.config import EncoderConfig
+from hipolicy_jax.envs import demos
+
+path, calls, me, other = sys.argv[1:5]
+
+def slow_collect(task, num_episodes, key, obs_keys, **kwargs):  # smoke-size stand-in: this process's pid as data
+    with open(calls, "a") as f:
+        f.write(f"{os.getpid()}\\n")
+    time.sleep(1.0)  # the other process reaches the lock while this one collects
+    return [{"state": np.full((5, 3), os.getpid() + i, np.float32), "action": np.full((5, 2), i, np.float32)}
+            for i in range(num_episodes)]
+
+demos.collect_demos = slow_collect
+open(me, "w").close()
+while not os.path.exists(other):  # barrier: both processes ask for the buffer at the same moment
+    time.sleep(0.01)
+buffer = demos.load_or_collect("press_button", EncoderConfig(), 3, path, progress=False)
+print(json.dumps({"pid": os.getpid(), "episodes": buffer.num_episodes,
+                  "state": np.asarray(buffer.data["state"]).tolist()}))
+"""
+
+
+def test_concurrent_demo_collection_across_processes_happens_once(tmp_path):
+    """Two PROCESSES (as a campaign's shards) racing for one missing demo buffer: exactly one collects (the other
+    reports that it waits for the lock), both end with the collector's data, and only the dataset and its lock file
+    are left. The collection is a stand-in that writes the collecting process's pid into the data, so a buffer
+    collected twice cannot pass as one."""
+    path, calls = str(tmp_path / "data" / "demo.zarr"), str(tmp_path / "calls")
+    ready = [str(tmp_path / f"ready{i}") for i in range(2)]
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    procs = [subprocess.Popen([sys.executable, "-c", COLLECT_RACER, path, calls, ready[i], ready[1 - i]], env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [err[-2000:] for _, err in outs]
+    collectors = [int(x) for x in open(calls).read().split()]
+    assert len(collectors) == 1 and collectors[0] in [p.pid for p in procs]  # collected once
+    waited = [p.pid for p, (out, _) in zip(procs, outs) if "waiting for another process collecting" in out]
+    assert len(waited) == 1 and waited[0] != collectors[0]  # the other process really met the held lock
+    got = [json.loads(out.strip().splitlines()[-1]) for out, _ in outs]
+    want = [np.full((5, 3), collectors[0] + i).tolist() for i in range(3)]
+    for g in got:
+        assert g["episodes"] == 3 and np.array_equal(g["state"], np.concatenate(want))
+    assert sorted(os.listdir(tmp_path / "data")) == [".demo.zarr.lock", "demo.zarr"]
 
 
 def test_no_startup_noise():
