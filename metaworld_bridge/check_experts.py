@@ -1,0 +1,86 @@
+"""How often Meta-World's scripted experts succeed on DP3's Medium, Hard and Very Hard tasks (v3).
+
+    python -m metaworld_bridge.check_experts --seeds 50          # → results/metaworld/experts.json
+
+Every task runs its expert from the initial states of seeds 0..N-1 (``env.MetaWorldTask.reset``: the seeds the
+demos are collected from) until the first success or the 500-step limit, without a camera. The JSON holds, per
+task, successes out of N, the mean (min, max) steps of the successful episodes and the failed seeds, plus the
+group totals and the versions it ran with.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.metadata
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+from metaworld_bridge.env import MAX_STEPS, MetaWorldTask
+from metaworld_bridge.tasks import DP3_GROUPS
+
+DEFAULT_OUT = os.path.join("results", "metaworld", "experts.json")
+
+
+def check_task(task: str, seeds: int, first_seed: int = 0) -> dict:
+    """Expert success of ``task`` over ``seeds`` initial states from ``first_seed``."""
+    env = MetaWorldTask(task)
+    steps, failed = [], []
+    for s in range(first_seed, first_seed + seeds):
+        ep = env.run_expert(s)
+        (steps.append(ep.steps) if ep.success else failed.append(s))
+    ok = np.asarray(steps)
+    return {"successes": len(steps), "episodes": seeds, "success_rate": len(steps) / seeds,
+            "mean_steps": float(ok.mean()) if ok.size else None, "min_steps": int(ok.min()) if ok.size else None,
+            "max_steps": int(ok.max()) if ok.size else None, "failed_seeds": failed}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(prog="python -m metaworld_bridge.check_experts", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seeds", type=int, default=50, help="initial states per task")
+    parser.add_argument("--first-seed", type=int, default=0)
+    parser.add_argument("--groups", nargs="+", default=list(DP3_GROUPS), choices=list(DP3_GROUPS))
+    parser.add_argument("--tasks", nargs="+", default=None, help="these tasks instead of --groups")
+    parser.add_argument("--out", default=DEFAULT_OUT)
+    args = parser.parse_args(argv)
+    if args.seeds < 1:
+        raise SystemExit(f"error: seeds: must be >= 1, got {args.seeds}")
+    groups = {"custom": tuple(args.tasks)} if args.tasks else {g: DP3_GROUPS[g] for g in args.groups}
+    t0 = time.perf_counter()
+    tasks, totals = {}, {}
+    try:
+        for group, names in groups.items():
+            for name in names:
+                t = time.perf_counter()
+                tasks[name] = {"group": group, **check_task(name, args.seeds, args.first_seed)}
+                r = tasks[name]
+                mean = "-" if r["mean_steps"] is None else f"{r['mean_steps']:.1f}"
+                print(f"{group:>9} {name:<18} {r['successes']:>3}/{args.seeds}  mean steps {mean:>6}  "
+                      f"({time.perf_counter() - t:.1f} s)", flush=True)
+            ok = sum(tasks[n]["successes"] for n in names)
+            totals[group] = {"tasks": len(names), "successes": ok, "episodes": len(names) * args.seeds,
+                             "success_rate": ok / (len(names) * args.seeds)}
+    except ValueError as e:
+        raise SystemExit(f"error: {e}")
+    report = {
+        "what": "Meta-World v3 scripted experts (metaworld.policies.ENV_POLICY_MAP), goal-observable envs, one "
+                "episode per seed until the first success (info['success']) or the step limit",
+        "seeds": list(range(args.first_seed, args.first_seed + args.seeds)), "max_steps": MAX_STEPS,
+        "metaworld": importlib.metadata.version("metaworld"), "mujoco": importlib.metadata.version("mujoco"),
+        "python": sys.version.split()[0], "seconds": round(time.perf_counter() - t0, 1),
+        "groups": totals, "tasks": tasks,
+    }
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w") as f:
+        json.dump(report, f, indent=1)
+        f.write("\n")
+    print(", ".join(f"{g}: {v['successes']}/{v['episodes']}" for g, v in totals.items()) + f" → {args.out}")
+    return report
+
+
+if __name__ == "__main__":
+    main()
