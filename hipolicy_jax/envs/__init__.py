@@ -2,12 +2,16 @@
 
 ``make(task_name, **overrides) -> MjxEnv`` builds a task; ``TASKS`` lists the names; ``make_for_encoder`` builds a
 task computing the observations a policy's encoder reads (with its camera). See ``base.py`` for the API.
+
+Tasks of external simulators (``metaworld:<task>``, ``external.py``) have no MJX env: they are trained on from demos
+collected in their own venv; ``check_task`` accepts both kinds.
 """
 
 from __future__ import annotations
 
 from hipolicy_jax.config import EncoderConfig
 from hipolicy_jax.envs.base import ExpertPlan, MjxEnv, State
+from hipolicy_jax.envs import external
 from hipolicy_jax.envs.camera import CameraConfig
 from hipolicy_jax.envs.latch_door import LatchDoor
 from hipolicy_jax.envs.pick_place import PickPlace
@@ -27,9 +31,24 @@ TASKS: tuple[str, ...] = tuple(_REGISTRY)
 TASK_PRECISE: dict[str, bool] = {"press_button": True, "stack_cubes": True, "latch_door": False, "pick_place": False}
 
 
+def check_task(task_name: str) -> None:
+    """Raise ``ValueError`` unless ``task_name`` is an MJX task (``TASKS``) or an external one (``<suite>:<task>``,
+    e.g. ``metaworld:assembly``)."""
+    if task_name in _REGISTRY:
+        return
+    if ":" in task_name:
+        external.check_name(task_name)
+        return
+    raise ValueError(f"task: must be one of {list(TASKS)} or an external task "
+                     f"({' / '.join(f'{s}:<task>' for s in external.SUITES)}), got {task_name!r}")
+
+
 def make(task_name: str, **overrides) -> MjxEnv:
     """Build the task ``task_name`` (one of ``TASKS``); ``overrides`` go to its constructor (control_dt, max_steps,
     obs_keys, camera, task-specific options)."""
+    if external.is_external(task_name):
+        raise ValueError(f"task_name: {task_name} is an external task with no MJX env: it cannot be rolled out "
+                         f"in-process (evaluate it in its own simulator through the policy server)")
     if task_name not in _REGISTRY:
         raise ValueError(f"task_name: must be one of {TASKS}, got {task_name!r}")
     return _REGISTRY[task_name](**overrides)
@@ -61,5 +80,5 @@ def make_for_encoder(task_name: str, encoder: EncoderConfig = EncoderConfig(), *
     return make(task_name, **{**encoder_env_kwargs(encoder), **overrides})
 
 
-__all__ = ["TASKS", "TASK_PRECISE", "make", "make_for_encoder", "encoder_env_kwargs", "episode_limit", "MjxEnv", "State",
-           "ExpertPlan"]
+__all__ = ["TASKS", "TASK_PRECISE", "check_task", "external", "make", "make_for_encoder", "encoder_env_kwargs",
+           "episode_limit", "MjxEnv", "State", "ExpertPlan"]

@@ -5,6 +5,10 @@ evaluation → calibration → outputs in the run directory.
 ``train(cfg)`` runs it (resuming from the last checkpoint), ``dry_run(cfg)`` validates it, ``ensure_trained(cfg)``
 trains only what is unfinished. One ``Evaluator`` serves every evaluation of the run (one compile).
 
+An external task (``--task metaworld:assembly``, ``envs.external``) trains on demos collected in its own venv
+(``--data``, default ``data/metaworld_assembly_<episodes>.zarr``), which must exist; it has no MJX env, so it runs
+with ``--eval.every 0 --no-final-eval`` and its thresholds are calibrated on the held-out demos alone.
+
 Outputs under ``cfg.out_dir()``: ``checkpoints/``, ``metrics.jsonl``, ``tb/``, ``inference.json`` (the inference
 settings of its evaluations), ``calibration.json`` and ``summary.json``.
 """
@@ -23,10 +27,12 @@ from hipolicy_jax.config import (ChunkConfig, EvalConfig, InferenceConfig, Model
                                  replace)
 from hipolicy_jax import envs, parallel
 from hipolicy_jax.data.dataset import train_heldout_datasets
+from hipolicy_jax.data.replay_buffer import ReplayBuffer
 from hipolicy_jax.envs.base import PROPRIO_DIM
 from hipolicy_jax.envs.demos import check_buffer, check_buffer_fits_env, default_data_path, load_or_collect
 from hipolicy_jax.evaluation import calibration
 from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
+from hipolicy_jax.models.policy_net import PolicyNet
 from hipolicy_jax.runs.lock import RunLock
 from hipolicy_jax.runs.store import Run, eval_key, load_run, read_json, write_inference, write_json
 from hipolicy_jax.trainer import fit, logged_train_seconds, run_keys
@@ -61,40 +67,92 @@ class RunConfig:
     # they read proprioception only (policy.encoder.state_dims = 4, as DP / DP3), unless state_dims is set
 
     def __post_init__(self):
-        if self.task not in envs.TASKS:
-            raise ValueError(f"task: must be one of {list(envs.TASKS)}, got {self.task!r}")
+        envs.check_task(self.task)
+        if self.external and (self.eval.every or self.final_eval):
+            raise ValueError(f"eval: {self.task} has no MJX env to evaluate in (it is evaluated in its own simulator, "
+                             f"through the policy server); pass --eval.every 0 --no-final-eval")
         half = self.policy.chunk.chunk_len // 2
         if self.inference.delay > half:  # the decision must be ready before the next one starts
             raise ValueError(f"inference.delay: at most chunk.chunk_len // 2 = {half} control steps (a decision "
                              f"must be ready before the next one starts), got {self.inference.delay}")
         enc = self.policy.encoder
         if enc.obs_type != "state" and enc.state_dims is None and not self.privileged_state:
-            object.__setattr__(self, "policy", replace(self.policy, **{"encoder.state_dims": PROPRIO_DIM}))
+            proprio = envs.external.make(self.task).suite.proprio_dim if self.external else PROPRIO_DIM
+            object.__setattr__(self, "policy", replace(self.policy, **{"encoder.state_dims": proprio}))
+
+    @property
+    def external(self) -> bool:
+        """Whether the task is an external one (no MJX env; demos from its own venv)."""
+        return envs.external.is_external(self.task)
 
     def out_dir(self) -> str:
-        return self.out or os.path.join("runs", f"{self.task}_{self.policy.encoder.obs_type}_seed{self.train.seed}")
+        task = self.task.replace(":", "_")
+        return self.out or os.path.join("runs", f"{task}_{self.policy.encoder.obs_type}_seed{self.train.seed}")
 
     def data_path(self) -> str:
-        return self.data or default_data_path(self.task, self.policy.encoder, self.episodes)
+        if self.data:
+            return self.data
+        if self.external:
+            return envs.external.default_data_path(self.task, self.episodes)
+        return default_data_path(self.task, self.policy.encoder, self.episodes)
+
+    def task_spec(self):
+        """What the run's demos must fit (action and observation shapes): the MJX env, or the external task."""
+        if self.external:
+            return envs.external.make(self.task, self.policy.encoder)
+        return envs.make_for_encoder(self.task, self.policy.encoder)
+
+
+def load_external_demos(cfg: RunConfig) -> ReplayBuffer:
+    """An external task's demo buffer at ``cfg.data_path()``, checked against the encoder and the task (it is never
+    collected here: a missing one is an error naming the commands that make it)."""
+    path = cfg.data_path()
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"data: {path} does not exist; {cfg.task} demos are collected in their own venv: "
+                                f"{envs.external.collect_hint(cfg.task, cfg.episodes, path)} (or pass --data)")
+    envs.external.check_demos(cfg.task, path)
+    buffer = ReplayBuffer.load(path)
+    check_buffer(buffer, cfg.policy.encoder, path)
+    return buffer
+
+
+class DemoCalibrator(Evaluator):
+    """The calibration half of an ``Evaluator`` for a task with no MJX env (external tasks): entropy thresholds from
+    held-out demo windows through the same sampler; it cannot roll out."""
+
+    def __init__(self, task: str, cfg: PolicyConfig, action_dim: int, inference: InferenceConfig = InferenceConfig()):
+        self.cfg, self.action_dim, self.inference = cfg, action_dim, inference
+        self.task, self.env = task, None
+        self.net = PolicyNet(cfg, action_dim)
+        self._sampler = None
+
+    @property
+    def traces(self) -> int:
+        return 0
+
+    def rollout(self, *args, **kwargs):
+        raise ValueError(f"{self.task} has no MJX env to roll out in; evaluate it in its own simulator")
 
 
 def dry_run(cfg: RunConfig) -> dict:
     """Check the config and the dataset, print what training would see; nothing is trained or written."""
     from hipolicy_jax import parallel
-    from hipolicy_jax.data.replay_buffer import ReplayBuffer
     from hipolicy_jax.models.policy_net import init_policy_params, param_count
 
     path = cfg.data_path()
     mesh = parallel.make_mesh(cfg.num_devices)
     parallel.check_batch_size(cfg.train.batch_size, mesh)
     info = {"task": cfg.task, "data": path, "devices": 1 if mesh is None else mesh.size}
-    if not os.path.exists(path):
+    if cfg.external:
+        buffer = load_external_demos(cfg)
+    elif not os.path.exists(path):
         print(f"dataset {path} does not exist: training would first collect {cfg.episodes} expert demos of "
               f"{cfg.task}")
         return info
-    buffer = ReplayBuffer.load(path)
-    check_buffer(buffer, cfg.policy.encoder, path)
-    check_buffer_fits_env(buffer, envs.make_for_encoder(cfg.task, cfg.policy.encoder), path)
+    else:
+        buffer = ReplayBuffer.load(path)
+        check_buffer(buffer, cfg.policy.encoder, path)
+    check_buffer_fits_env(buffer, cfg.task_spec(), path)
     train_ds, val_ds = train_heldout_datasets(buffer, cfg.policy.chunk, cfg.policy.encoder.obs_keys, cfg.val_ratio,
                                               cfg.train.seed)
     if len(train_ds) < cfg.train.batch_size:
@@ -146,13 +204,16 @@ def train(cfg: RunConfig) -> dict:
 def _train(cfg: RunConfig, out: str) -> dict:
     t0 = time.perf_counter()
     primary = parallel.is_primary()
-    if primary:
+    if primary and not cfg.external:
         load_or_collect(cfg.task, cfg.policy.encoder, cfg.episodes, cfg.data_path(), seed=cfg.demo_seed,
                         progress=cfg.progress)
     parallel.barrier("demos")  # the others read the demos process 0 wrote
-    buffer = load_or_collect(cfg.task, cfg.policy.encoder, cfg.episodes, cfg.data_path(), seed=cfg.demo_seed,
-                             progress=False)
-    env = envs.make_for_encoder(cfg.task, cfg.policy.encoder)
+    if cfg.external:
+        buffer = load_external_demos(cfg)
+    else:
+        buffer = load_or_collect(cfg.task, cfg.policy.encoder, cfg.episodes, cfg.data_path(), seed=cfg.demo_seed,
+                                 progress=False)
+    env = cfg.task_spec()
     check_buffer_fits_env(buffer, env, cfg.data_path())  # before any training: the run is evaluated in this env
     policy = cfg.policy
     train_ds, val_ds = train_heldout_datasets(buffer, policy.chunk, policy.encoder.obs_keys, cfg.val_ratio,
@@ -161,7 +222,10 @@ def _train(cfg: RunConfig, out: str) -> dict:
           f"{len(val_ds)} held-out windows")
     keys = run_keys(cfg.train.seed)
     action_dim = int(buffer.data["action"].shape[-1])
-    evaluator = Evaluator(env, policy, action_dim, cfg.inference)
+    if cfg.external:
+        evaluator = DemoCalibrator(cfg.task, policy, action_dim, cfg.inference)
+    else:
+        evaluator = Evaluator(env, policy, action_dim, cfg.inference)
     if primary:
         write_inference(out, cfg.inference)
     last: dict = {}  # the latest in-training evaluation, reused when it ran on the final state

@@ -1,0 +1,165 @@
+"""Meta-World bridge: expert demos collected in the Meta-World venv (``metaworld_bridge.collect``, subprocess) land in
+the project's zarr layout with state and point clouds, and the project trains on them as ``metaworld:<task>``.
+
+The bridge needs its own venv (``bash scripts/setup_metaworld.sh`` → ``.venv-metaworld``; ``METAWORLD_VENV``
+chooses another); without it the tests that run the bridge are skipped.
+"""
+
+import dataclasses
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from hipolicy_jax import envs
+from hipolicy_jax.config import EncoderConfig, InferenceConfig, ModelConfig, PolicyConfig, TrainConfig
+from hipolicy_jax.data.replay_buffer import ReplayBuffer
+from hipolicy_jax.envs import external
+from hipolicy_jax.runs.train import RunConfig, main
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+VENV = os.path.join(ROOT, os.environ.get("METAWORLD_VENV", ".venv-metaworld"))
+PYTHON = os.path.join(VENV, "bin", "python")
+TASK, EPISODES, POINTS = "assembly", 2, 64
+
+needs_venv = pytest.mark.skipif(not os.path.exists(PYTHON),
+                                reason=f"no Meta-World venv at {VENV}: run `bash scripts/setup_metaworld.sh`")
+
+
+def bridge(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    """``python -m metaworld_bridge.<args>`` in the Meta-World venv, from the repository root."""
+    return subprocess.run([PYTHON, "-m", *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def demos(tmp_path_factory):
+    """Two assembly demos (64-point clouds from a 32 x 32 ray grid), collected twice from the same seeds."""
+    out = tmp_path_factory.mktemp("metaworld")
+    paths = [str(out / "a.zarr"), str(out / "b.zarr")]
+    for path in paths:
+        r = bridge("metaworld_bridge.collect", "--task", TASK, "--episodes", str(EPISODES), "--out", path,
+                   "--num-points", str(POINTS), "--camera-size", "32", "--no-progress")
+        assert r.returncode == 0, r.stderr[-2000:]
+    return paths, r.stdout
+
+
+@needs_venv
+def test_bridge_imports_no_jax():
+    code = ("import sys, metaworld_bridge.collect, metaworld_bridge.check_experts; "
+            "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('jax', 'jaxlib', 'flax', 'hipolicy_jax')); "
+            "assert not bad, bad")
+    r = subprocess.run([PYTHON, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr[-2000:]
+
+
+@needs_venv
+def test_collect_writes_the_project_layout(demos):
+    import zarr
+
+    (path, again), stdout = demos
+    assert f"{TASK}: {EPISODES} successful of" in stdout and "mean steps" in stdout
+    buf = ReplayBuffer.load(path)  # the project's loader validates lengths, ranks, finiteness, episode_ends
+    assert buf.num_episodes == EPISODES and sorted(buf.keys) == ["action", "point_cloud", "state"]
+    t = buf.num_frames
+    assert buf.data["state"].shape == (t, 39) and buf.data["action"].shape == (t, 4)
+    assert buf.data["point_cloud"].shape == (t, POINTS, 3)
+    assert all(v.dtype == np.float32 for v in buf.data.values()) and buf.episode_ends.dtype == np.int64
+    root = zarr.open_group(path, mode="r")
+    assert root["meta/episode_ends"].dtype == np.int64
+    attrs = dict(root.attrs)
+    assert attrs["task"] == TASK and attrs["seeds"] == [0, 1] and attrs["steps"] == buf.episode_lengths().tolist()
+    for key, arr in buf.data.items():
+        assert np.isfinite(arr).all(), key
+    assert np.abs(buf.data["action"]).max() <= 1.0
+    # every point lies in DP3's crop box (its own frame, floor in the world) and on or above the table
+    crop = attrs["crop"]
+    pts = buf.data["point_cloud"].reshape(-1, 3).astype(np.float64)
+    local = (pts - np.asarray(crop["frame_origin"])) @ np.asarray(crop["frame_rotation"]).T
+    assert np.all(local[:, :2] > np.asarray(crop["low"][:2]) - 1e-6)
+    assert np.all(local[:, :2] < np.asarray(crop["high"][:2]) + 1e-6)
+    assert np.all(pts[:, 2] > crop["floor_z"] - 1e-6) and np.all(pts[:, 2] < 1.5)
+    # the clouds see the hand: some point lies within 10 cm of the hand position (state[:3]) in most frames
+    near = np.linalg.norm(buf.data["point_cloud"] - buf.data["state"][:, None, :3], axis=-1).min(axis=1) < 0.1
+    assert near.mean() > 0.9
+    # seeded initial states: the same seeds give the same demos, to the bit
+    other = ReplayBuffer.load(again)
+    for key in buf.keys:
+        np.testing.assert_array_equal(buf.data[key], other.data[key])
+    np.testing.assert_array_equal(buf.episode_ends, other.episode_ends)
+
+
+@needs_venv
+def test_train_pointcloud_policy_on_metaworld_demos(demos, tmp_path):
+    (path, _), _ = demos
+    cfg = RunConfig(task=f"metaworld:{TASK}", data=path, out=str(tmp_path / "run"), val_ratio=0.5,
+                    policy=PolicyConfig(model=ModelConfig(size="tiny", fusion_heads=2),
+                                        encoder=EncoderConfig(obs_type="pointcloud", num_points=POINTS)),
+                    train=TrainConfig(batch_size=16, num_steps=12, warmup_steps=2, log_every=6, ckpt_every=12),
+                    inference=InferenceConfig(num_samples=4, num_steps=2, calib_windows=8),
+                    eval=dataclasses.replace(RunConfig().eval, every=0), final_eval=False, progress=False)
+    assert cfg.policy.encoder.state_dims == 4  # proprioception: hand xyz + gripper
+    assert cfg.out_dir() == str(tmp_path / "run")
+    summary = main(cfg)
+    assert summary["steps"] == 12 and summary["eval"] is None and np.isfinite(summary["final_loss"])
+    assert summary["task"] == "metaworld:assembly" and summary["demos"]["episodes"] == EPISODES
+    th = summary["thresholds"]  # calibrated on the held-out demos without an env
+    assert len(th) == 4 and th[0] == -np.inf and th[-1] == np.inf and th[1] <= th[2]
+    # a state policy on the same buffer: the whole 39-D state
+    info = main(dataclasses.replace(cfg, policy=PolicyConfig(model=ModelConfig(size="tiny", fusion_heads=2)),
+                                    dry_run=True))
+    assert info["batch"]["obs.state"][-1] == 39 and info["batch"]["action"][-1] == 4
+
+
+@needs_venv
+def test_external_task_errors_name_the_fix(demos, tmp_path):
+    (path, _), _ = demos
+    ok = dict(eval=dataclasses.replace(RunConfig().eval, every=0), final_eval=False, dry_run=True, progress=False)
+    with pytest.raises(ValueError, match="holds demos of metaworld:assembly, not metaworld:push"):
+        main(RunConfig(task="metaworld:push", data=path, **ok))
+    cfg = RunConfig(task="metaworld:assembly", data=path, **ok)
+    with pytest.raises(ValueError, match=r"point_cloud has frames of shape \(64, 3\).*expects \(512, 3\)"):
+        main(dataclasses.replace(cfg, policy=PolicyConfig(encoder=EncoderConfig(obs_type="pointcloud"))))
+
+
+def test_external_task_config(tmp_path):
+    with pytest.raises(ValueError, match="pass --eval.every 0 --no-final-eval"):
+        RunConfig(task="metaworld:assembly")
+    with pytest.raises(ValueError, match="or an external task"):
+        RunConfig(task="assembly")
+    with pytest.raises(ValueError, match="needs a task name"):
+        RunConfig(task="metaworld:")
+    with pytest.raises(ValueError, match="unknown external suite"):
+        RunConfig(task="robosuite:lift")
+    with pytest.raises(ValueError, match="no MJX env"):
+        envs.make("metaworld:assembly")
+    cfg = RunConfig(task="metaworld:assembly", episodes=7, eval=dataclasses.replace(RunConfig().eval, every=0),
+                    final_eval=False, dry_run=True, out=str(tmp_path / "run"))
+    assert cfg.data_path() == os.path.join("data", "metaworld_assembly_7.zarr")
+    assert dataclasses.replace(cfg, out="").out_dir() == os.path.join("runs", "metaworld_assembly_state_seed0")
+    spec = external.make("metaworld:assembly", EncoderConfig(obs_type="pointcloud", num_points=128))
+    assert spec.action_dim == 4 and spec.obs_shapes == {"state": (39,), "point_cloud": (128, 3)}
+    # a missing buffer is never collected here: the error names the bridge's commands
+    with pytest.raises(FileNotFoundError, match=r"scripts/setup_metaworld.sh && .*metaworld_bridge.collect "
+                                                r"--task assembly --episodes 7"):
+        main(dataclasses.replace(cfg, data=str(tmp_path / "missing.zarr")))
+    # an MJX task's buffer does not fit: state is 39-D here
+    mjx = ReplayBuffer.from_episodes([{"state": np.zeros((30, 7), np.float32), "action": np.zeros((30, 4), np.float32)}])
+    mjx.save(str(tmp_path / "mjx.zarr"))
+    with pytest.raises(ValueError, match=r"data/state has frames of shape \(7,\), the metaworld:assembly task "
+                                         r"expects \(39,\)"):
+        main(dataclasses.replace(cfg, data=str(tmp_path / "mjx.zarr")))
+
+
+def test_farthest_point_sampling_is_deterministic_and_spread():
+    sys.path.insert(0, ROOT)
+    from metaworld_bridge.pointcloud import farthest_point_indices
+
+    rng = np.random.default_rng(0)
+    pts = np.concatenate([rng.normal(0, 0.01, (500, 3)), [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]])
+    idx = farthest_point_indices(pts, 8)
+    assert idx[0] == 0 and {500, 501} <= set(idx.tolist()) and len(set(idx.tolist())) == 8
+    np.testing.assert_array_equal(idx, farthest_point_indices(pts, 8))
+    np.testing.assert_array_equal(farthest_point_indices(pts[:3], 7), [0, 1, 2, 0, 1, 2, 0])  # few points: cyclic
+    assert farthest_point_indices(pts[:0], 4).size == 0
