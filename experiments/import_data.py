@@ -6,7 +6,7 @@
     python -m experiments.import_data lerobot ~/lerobot/pusht data/lerobot_pusht.zarr --dry-run
 
 Formats: ``dp-zarr`` (Diffusion Policy zarr ReplayBuffer), ``robomimic`` (hdf5), ``lerobot`` (local LeRobot v2.x
-folder; videos decoded with PyAV). ``--key-map obs_key=src_key[,src_key...]`` picks and renames keys (several
+or v3.0 folder; videos decoded with PyAV). ``--key-map obs_key=src_key[,src_key...]`` picks and renames keys (several
 sources are concatenated along the last axis); without it each format's default map is used (see
 ``hipolicy_jax.data.importers``). Episodes shorter than ``--min-length`` frames (default: the default
 ``ChunkConfig.action_span``, the longest stride's action window) are dropped and listed in the printed summary;

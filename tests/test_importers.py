@@ -1,4 +1,5 @@
-"""Importers (Diffusion Policy zarr, robomimic hdf5, LeRobot v2) and their validation, on small files made here."""
+"""Importers (Diffusion Policy zarr, robomimic hdf5, LeRobot v2.x and v3.0) and their validation, on small files made
+here and on a LeRobot v3.0 dataset written by the real library (tests/fixtures/lerobot_v3)."""
 
 import json
 import os
@@ -425,11 +426,236 @@ def test_lerobot_metadata_errors(tmp_path):
         import_lerobot(root)
     with pytest.raises(DataValidationError, match=r"info\.json: features: missing key 'observation\.wrist'"):
         import_lerobot(root, key_map={"image": ("observation.wrist",)})
-    v3 = write_lerobot(tmp_path / "v3", [20], version="v3.0")
-    with pytest.raises(DataValidationError, match="codebase_version 'v3.0', expected a LeRobot v2.x dataset"):
-        import_lerobot(v3)
+    for version in ("v1.6", "v4.0", "v3.1"):
+        other = write_lerobot(tmp_path / version, [20], version=version)
+        with pytest.raises(DataValidationError, match=rf"info\.json: codebase_version '{version}' is not supported; "
+                                                      r"supported versions: v2\.x \(v2\.0, v2\.1: .*\) and v3\.0"):
+            import_lerobot(other)
     with pytest.raises(DataValidationError, match=r"meta/info\.json: missing"):
         import_lerobot(tmp_path)
+
+
+# -------------------------------------------------------------------------------------------------- LeRobot v3.0
+# Written by lerobot 0.4.4 itself (scripts/make_lerobot_v3_fixture.py): 5 episodes, data and videos in file-000
+# (episodes 0-2) and file-001 (episodes 3-4), expected.npz holding the values the script recorded.
+LEROBOT_V3 = os.path.join(os.path.dirname(__file__), "fixtures", "lerobot_v3")
+V3_CAMERA = "observation.images.cam"
+V3_EPISODES = os.path.join("meta", "episodes", "chunk-000")
+V3_DATA = os.path.join("data", "chunk-000")
+
+
+def v3_expected():
+    with np.load(os.path.join(LEROBOT_V3, "expected.npz")) as f:
+        return {k: f[k] for k in f.files}
+
+
+def v3_copy(tmp_path):
+    return shutil.copytree(LEROBOT_V3, tmp_path / "v3")
+
+
+def edit_parquet(path, edit):
+    """Rewrite a parquet file with ``edit(columns: dict[str, pyarrow.Array]) -> None`` applied in place."""
+    pa = pytest.importorskip("pyarrow")
+    pq = pytest.importorskip("pyarrow.parquet")
+    table = pq.read_table(path)
+    cols = {name: table.column(name).combine_chunks() for name in table.column_names}
+    edit(cols)
+    pq.write_table(pa.table(cols), path)
+
+
+def set_values(cols, name, rows, values):
+    import pyarrow as pa
+    arr = cols[name].to_numpy(zero_copy_only=False).copy()
+    arr[rows] = values
+    cols[name] = pa.array(arr, type=cols[name].type)
+
+
+def test_lerobot_v3_fixture_imports_what_lerobot_wrote():
+    pytest.importorskip("av")
+    expected = v3_expected()
+    buf, summary = import_lerobot(LEROBOT_V3)
+    assert summary.key_map == {"state": ("observation.state",), "action": ("action",), "image": (V3_CAMERA,)}
+    assert [(r.name, r.length) for r in summary.kept] == [(f"episode {i}", n)
+                                                          for i, n in enumerate(expected["lengths"])]
+    assert not summary.dropped and "LeRobot v3.0: 5 episodes in 2 parquet files" in summary.notes
+    np.testing.assert_array_equal(buf.episode_lengths(), [16, 12, 20, 9, 14])
+    np.testing.assert_array_equal(buf.data["state"], expected["state"])  # float32, bit for bit
+    np.testing.assert_array_equal(buf.data["action"], expected["action"])
+    assert buf.data["state"].dtype == buf.data["action"].dtype == np.float32
+    assert buf.data["image"].shape == (71, 32, 32, 3) and buf.data["image"].dtype == np.uint8
+    # Flat AV1 frames: each frame's colour within 4 levels of what was recorded. Consecutive frames differ by 17
+    # levels, so episodes 1-2 and 4, which start mid-file (from_timestamp 1.6, 2.8, 0.9 s), are matched frame for
+    # frame.
+    colours = buf.data["image"].reshape(71, -1, 3).astype(np.float64).mean(axis=1)
+    np.testing.assert_allclose(colours, expected["rgb"], atol=4)
+    assert summary.keys["image"] == ((32, 32, 3), "uint8")
+
+
+def test_lerobot_v3_cli_import_then_train(tmp_path, capsys):
+    """The fixture through ``experiments.import_data lerobot`` to a zarr, loaded back and trained a few steps with
+    an image + state policy (tiny network)."""
+    pytest.importorskip("av")
+    from hipolicy_jax.config import ChunkConfig, EncoderConfig, ModelConfig, PolicyConfig, TrainConfig
+    from hipolicy_jax.data.dataset import train_heldout_datasets
+    from hipolicy_jax.trainer import fit
+
+    dst = str(tmp_path / "v3.zarr")
+    import_data.main(["lerobot", LEROBOT_V3, dst, "--min-length", "10"])
+    out = capsys.readouterr().out
+    assert "wrote 4 episodes (62 frames)" in out and "episode 3: too short: 9 frames < min_length 10" in out
+    buf = ReplayBuffer.load(dst)
+    expected = v3_expected()
+    keep = np.concatenate([np.arange(0, 48), np.arange(57, 71)])  # episode 3 (frames 48:57) dropped
+    np.testing.assert_array_equal(buf.data["state"], expected["state"][keep])
+    np.testing.assert_array_equal(buf.episode_lengths(), [16, 12, 20, 14])
+
+    cfg = PolicyConfig(chunk=ChunkConfig(strides=(1, 2), obs_horizon=2, chunk_len=4),
+                       model=ModelConfig(size="tiny", fusion_heads=2),
+                       encoder=EncoderConfig(obs_type="image", image_size=32, crop_size=28, image_channels=(8,),
+                                             num_keypoints=4, image_out=16, state_hidden=(16,), state_out=8))
+    train_ds, _ = train_heldout_datasets(buf, cfg.chunk, cfg.encoder.obs_keys, val_ratio=0.25, seed=0)
+    batch = train_ds.get_batch(np.arange(2))
+    assert batch["obs"]["image"].shape[-3:] == (32, 32, 3) and batch["action"].shape[-1] == 3
+    train_cfg = TrainConfig(batch_size=8, num_steps=4, lr=1e-3, warmup_steps=1, log_every=2, ckpt_every=4)
+    res = fit(cfg, train_cfg, train_ds, str(tmp_path / "run"), progress=False, tensorboard=False)
+    assert len(res.losses) == 4 and np.isfinite(res.losses).all()
+
+
+def _v3_drop_episodes_file(root):
+    os.remove(os.path.join(root, V3_EPISODES, "file-001.parquet"))
+
+
+def _v3_no_episodes_dir(root):
+    shutil.rmtree(os.path.join(root, "meta", "episodes"))
+
+
+def _v3_range_past_file(root):  # episode 4 (rows 9:23 of file-001, 23 rows) moved 3 frames on
+    edit_parquet(os.path.join(root, V3_EPISODES, "file-001.parquet"), lambda c: (
+        set_values(c, "dataset_from_index", 1, 60), set_values(c, "dataset_to_index", 1, 74)))
+
+
+def _v3_range_into_next_episode(root):  # episode 1 (rows 16:28) moved 2 frames into episode 2
+    edit_parquet(os.path.join(root, V3_EPISODES, "file-000.parquet"), lambda c: (
+        set_values(c, "dataset_from_index", 1, 18), set_values(c, "dataset_to_index", 1, 30)))
+
+
+def _v3_length(root):
+    edit_parquet(os.path.join(root, V3_EPISODES, "file-000.parquet"), lambda c: set_values(c, "length", 2, 19))
+
+
+def _v3_frame_index(root):  # episode 1's frames 3 and 4 (rows 19, 20) swapped
+    edit_parquet(os.path.join(root, V3_DATA, "file-000.parquet"),
+                 lambda c: set_values(c, "frame_index", [19, 20], [4, 3]))
+
+
+def _v3_timestamp(root):  # episode 4's frame 5 (row 14 of file-001) at the time of frame 4
+    edit_parquet(os.path.join(root, V3_DATA, "file-001.parquet"), lambda c: set_values(c, "timestamp", 14, 0.4))
+
+
+def _v3_global_index(root):  # episode 3's fourth frame (row 3 of file-001) numbered 99 instead of 51
+    edit_parquet(os.path.join(root, V3_DATA, "file-001.parquet"), lambda c: set_values(c, "index", 3, 99))
+
+
+def _v3_float64_action(root):
+    import pyarrow as pa
+
+    def edit(c):
+        c["action"] = pa.array(c["action"].to_pylist(), pa.list_(pa.float64(), 3))
+    edit_parquet(os.path.join(root, V3_DATA, "file-000.parquet"), edit)
+
+
+def _v3_state_shape(root):
+    path = os.path.join(root, "meta", "info.json")
+    info = json.load(open(path))
+    info["features"]["observation.state"]["shape"] = [5]
+    json.dump(info, open(path, "w"))
+
+
+def _v3_missing_video(root):
+    os.remove(os.path.join(root, "videos", V3_CAMERA, "chunk-000", "file-001.mp4"))
+
+
+def _v3_from_timestamp(root):  # episode 4 said to start at 1.5 s of a 2.3 s file: its frames 8.. are past the end
+    edit_parquet(os.path.join(root, V3_EPISODES, "file-001.parquet"),
+                 lambda c: set_values(c, f"videos/{V3_CAMERA}/from_timestamp", 1, 1.5))
+
+
+def _v3_missing_data_file(root):
+    os.remove(os.path.join(root, V3_DATA, "file-001.parquet"))
+
+
+def _v3_version(root):
+    path = os.path.join(root, "meta", "info.json")
+    info = json.load(open(path))
+    info["codebase_version"] = "v4.0"
+    json.dump(info, open(path, "w"))
+
+
+@pytest.mark.parametrize("edit, match", [
+    (_v3_drop_episodes_file, r"meta/info\.json: total_episodes is 5, but .*meta/episodes lists 3 episodes "
+                             r"\(chunk-000/file-000\.parquet\); expected every episode listed once"),
+    (_v3_no_episodes_dir, r"meta/episodes: missing; expected the per-episode metadata "
+                          r"meta/episodes/chunk-XXX/file-XXX\.parquet of a LeRobot v3\.0 dataset"),
+    (_v3_range_past_file, r"meta/episodes/chunk-000/file-001\.parquet: episode 4: "
+                          r"dataset_from_index:dataset_to_index 60:74 is rows 12:26 of .*data/chunk-000/"
+                          r"file-001\.parquet, which holds 23 rows \(dataset frames 48:71\); expected the episode's "
+                          r"frames inside its parquet file"),
+    (_v3_range_into_next_episode, r"data/chunk-000/file-000\.parquet \(episode 1, rows 18:30\): column "
+                                  r"'episode_index' holds \[1, 2\], expected only 1"),
+    (_v3_length, r"meta/episodes/chunk-000/file-000\.parquet: episode 2: column 'length' is 19, expected 20 "
+                 r"\(dataset_to_index 48 - dataset_from_index 28\)"),
+    (_v3_frame_index, r"data/chunk-000/file-000\.parquet \(episode 1, rows 16:28\): column 'frame_index' is not "
+                      r"0\.\.11 in order: row 19 holds 4, expected 3"),
+    (_v3_timestamp, r"data/chunk-000/file-001\.parquet \(episode 4, rows 9:23\): column 'timestamp' must strictly "
+                    r"increase: row 14 is 0\.400000s after 0\.400000s"),
+    (_v3_global_index, r"data/chunk-000/file-001\.parquet \(episode 3, rows 0:9\): column 'index' is not the "
+                       r"episode's dataset_from_index\.\.dataset_to_index - 1 = 48\.\.56: row 3 holds 99, expected 51"),
+    (_v3_float64_action, r"data/chunk-000/file-000\.parquet \(episode 0, rows 0:16\): column 'action': dtype "
+                         r"float64, expected float32 as declared in meta/info\.json"),
+    (_v3_state_shape, r"data/chunk-000/file-000\.parquet \(episode 0, rows 0:16\): column 'observation\.state': "
+                      r"frames of shape \(4,\), expected \(5,\) as declared in meta/info\.json"),
+    (_v3_missing_video, r"data/chunk-000/file-001\.parquet \(episode 3, rows 0:9\): feature "
+                        r"'observation\.images\.cam': missing video file .*videos/observation\.images\.cam/"
+                        r"chunk-000/file-001\.mp4"),
+    (_v3_from_timestamp, r"chunk-000/file-001\.mp4: no video frame within 0\.0500s of frame 8's timestamp "
+                         r"0\.8000s \(\+ from_timestamp 1\.5000s = 2\.3000s in the file\) \(nearest "
+                         r"2\.2000s; .*\) for .*file-001\.parquet \(episode 4, rows 9:23\)"),
+    (_v3_missing_data_file, r"data/chunk-000/file-001\.parquet: missing parquet file of episodes \[3, 4\] "
+                            r"\(data/chunk_index 0, data/file_index 1 in .*meta/episodes/chunk-000/"
+                            r"file-001\.parquet"),
+    (_v3_version, r"info\.json: codebase_version 'v4\.0' is not supported; supported versions: "
+                 r"v2\.x .* and v3\.0"),
+])
+def test_lerobot_v3_errors_name_file_key_expected_and_actual(tmp_path, edit, match):
+    pytest.importorskip("av")
+    root = v3_copy(tmp_path)
+    edit(str(root))
+    with pytest.raises(DataValidationError, match=match):
+        import_lerobot(root)
+
+
+def test_lerobot_v3_camera_columns_are_read_only_for_an_imported_camera(tmp_path):
+    pytest.importorskip("av")
+    root = v3_copy(tmp_path)
+    edit_parquet(os.path.join(root, V3_EPISODES, "file-001.parquet"),
+                 lambda c: c.pop(f"videos/{V3_CAMERA}/from_timestamp"))
+    with pytest.raises(DataValidationError, match=r"meta/episodes/chunk-000/file-001\.parquet: missing column "
+                                                  r"'videos/observation\.images\.cam/from_timestamp' of video "
+                                                  r"feature 'observation\.images\.cam'"):
+        import_lerobot(root)
+    buf, summary = import_lerobot(root, key_map={"state": ("observation.state",)})
+    assert set(buf.data) == {"state", "action"} and buf.num_frames == 71
+    assert "source keys not imported: observation.images.cam" in summary.notes
+
+
+def test_lerobot_v3_cli_error_is_one_line(tmp_path, capsys):
+    root = v3_copy(tmp_path)
+    _v3_range_past_file(str(root))
+    with pytest.raises(SystemExit) as e:
+        import_data.main(["lerobot", str(root), str(tmp_path / "o.zarr")])
+    err = capsys.readouterr().err
+    assert e.value.code == 1 and err.startswith("error: ") and err.count("\n") == 1 and "Traceback" not in err
+    assert "episode 4: dataset_from_index:dataset_to_index 60:74" in err and not (tmp_path / "o.zarr").exists()
 
 
 # ----------------------------------------------------------------------------------------------------------- CLI

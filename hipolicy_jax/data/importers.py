@@ -10,10 +10,13 @@ Three sources are supported, each read episode by episode, mapped to the project
   numeric order (``demo_10`` after ``demo_9``). Default key map: ``action=actions``,
   ``state=robot0_eef_pos,robot0_eef_quat,robot0_gripper_qpos`` (those present) and ``image=agentview_image``
   (if present).
-* ``import_lerobot``: a local LeRobot v2.x dataset folder: ``meta/info.json`` (``fps``, ``features``,
-  ``data_path`` and ``video_path`` templates), one parquet file per episode and, for ``video`` features, one mp4 per
-  episode and camera, decoded to frames matched by timestamp. Default key map: ``state=observation.state``,
-  ``action=action`` and the camera feature as ``image`` (several cameras: ``image_<name>`` each).
+* ``import_lerobot``: a local LeRobot dataset folder, v2.x or v3.0 (``codebase_version`` in ``meta/info.json``,
+  with ``fps``, ``features`` and the ``data_path`` / ``video_path`` templates). v2.x: one parquet file per episode
+  and, for ``video`` features, one mp4 per episode and camera. v3.0: episodes grouped in
+  ``data/chunk-XXX/file-XXX.parquet`` and ``videos/<key>/chunk-XXX/file-XXX.mp4`` files, each located by its row of
+  ``meta/episodes/chunk-XXX/file-XXX.parquet``. Video frames are decoded and matched by timestamp. Default key map:
+  ``state=observation.state``, ``action=action`` and the camera feature as ``image`` (several cameras:
+  ``image_<name>`` each).
 
 Key maps are ``{project_key: (source_key, ...)}``; several source keys are concatenated along the last axis
 (``state=robot0_eef_pos,robot0_gripper_qpos``). An explicit key map imports exactly its keys, plus ``action`` from
@@ -33,6 +36,7 @@ h5py (robomimic), pyarrow (LeRobot) and PyAV (LeRobot videos) are optional: ``pi
 from __future__ import annotations
 
 import dataclasses
+import glob
 import json
 import os
 import re
@@ -409,9 +413,23 @@ def import_robomimic(src: str | os.PathLike, key_map: KeyMap | None = None,
 
 
 # ---------------------------------------------------------------------------------------------------- LeRobot
+LEROBOT_VERSIONS = "v2.x (v2.0, v2.1: one parquet file per episode) and v3.0 (episodes grouped in " \
+                   "chunk-XXX/file-XXX parquet and mp4 files)"
+
+
+def _lerobot_layout(version: str) -> str | None:
+    """``'v2'`` or ``'v3'`` for a supported ``codebase_version``, else None."""
+    if re.fullmatch(r"v2(\.\d+)*", version):
+        return "v2"
+    if re.fullmatch(r"v3\.0(\.0)*", version):
+        return "v3"
+    return None
+
+
 def _read_json(path: str) -> dict:
     if not os.path.isfile(path):
-        raise DataValidationError(f"{path}: missing; expected a LeRobot v2 dataset folder with meta/info.json")
+        raise DataValidationError(f"{path}: missing; expected a LeRobot dataset folder ({LEROBOT_VERSIONS}) with "
+                                  f"meta/info.json")
     try:
         with open(path) as fh:
             return json.load(fh)
@@ -419,8 +437,68 @@ def _read_json(path: str) -> dict:
         raise DataValidationError(f"{path}: not valid JSON ({e})") from e
 
 
+@dataclasses.dataclass(frozen=True)
+class _LeRobotEpisode:
+    """Where one LeRobot episode lives, from the dataset's metadata (either layout).
+
+    Attributes:
+      index: its ``episode_index``.
+      data_path: the parquet file holding its frames.
+      rows: ``(start, stop)`` rows of that file (v3.0, several episodes a file); None: the whole file (v2.x).
+      length: its declared number of frames, checked against the rows read; None when not declared.
+      first_index: its first global frame ``index`` (v3.0 ``dataset_from_index``); None: not checked.
+      video: video key -> ``(mp4 path, the episode's start in that file in seconds)``.
+    """
+
+    index: int
+    data_path: str
+    rows: tuple[int, int] | None
+    length: int | None
+    first_index: int | None
+    video: Callable[[str], tuple[str, float]]
+
+    @property
+    def where(self) -> str:
+        rows = "" if self.rows is None else f", rows {self.rows[0]}:{self.rows[1]}"
+        return f"{self.data_path} (episode {self.index}{rows})"
+
+
+def _format_path(template, field: str, info_path: str, example: str, **fields) -> str:
+    """``info[field].format(**fields)``; a missing or mismatched template names the field and what it should hold."""
+    if not isinstance(template, str) or not template:
+        raise DataValidationError(f"{info_path}: missing key {field!r}; expected a path template like {example!r}")
+    try:
+        return template.format(**fields)
+    except (KeyError, IndexError, ValueError) as e:
+        raise DataValidationError(f"{info_path}: {field} {template!r} does not format with {sorted(fields)} "
+                                  f"({type(e).__name__}: {e}); expected a template like {example!r}") from e
+
+
+def _lerobot_v2_episodes(root: str, info: dict, info_path: str) -> list[_LeRobotEpisode]:
+    """v2.x: one parquet file (and one mp4 per camera) per episode, named by ``data_path`` / ``video_path``."""
+    chunks_size = int(info.get("chunks_size", 1000))
+    data_example = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
+    video_example = "videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index:06d}.mp4"
+
+    def video(ep: int) -> Callable[[str], tuple[str, float]]:
+        def path(key: str) -> tuple[str, float]:
+            if not info.get("video_path"):
+                raise DataValidationError(f"{info_path}: feature {key!r} has dtype 'video' but info has no "
+                                          f"'video_path'")
+            return os.path.join(root, _format_path(info["video_path"], "video_path", info_path, video_example,
+                                                   episode_chunk=ep // chunks_size, video_key=key,
+                                                   episode_index=ep)), 0.0
+        return path
+
+    return [_LeRobotEpisode(ep, os.path.join(root, _format_path(info["data_path"], "data_path", info_path,
+                                                                data_example, episode_chunk=ep // chunks_size,
+                                                                episode_index=ep)),
+                            None, declared, None, video(ep))
+            for ep, declared in _lerobot_episodes(root, info)]
+
+
 def _lerobot_episodes(root: str, info: dict) -> list[tuple[int, int | None]]:
-    """``[(episode_index, declared length or None)]`` from ``meta/episodes.jsonl``, else ``total_episodes``."""
+    """v2.x: ``[(episode_index, declared length or None)]`` from ``meta/episodes.jsonl``, else ``total_episodes``."""
     path = os.path.join(root, "meta", "episodes.jsonl")
     if os.path.isfile(path):
         out = []
@@ -439,6 +517,139 @@ def _lerobot_episodes(root: str, info: dict) -> list[tuple[int, int | None]]:
         raise DataValidationError(f"{os.path.join(root, 'meta', 'info.json')}: missing key 'total_episodes' (and "
                                   f"no meta/episodes.jsonl); expected the number of episodes")
     return [(i, None) for i in range(int(info["total_episodes"]))]
+
+
+# v3.0 meta/episodes columns locating an episode's frames (LeRobot's LeRobotDatasetMetadata._save_episode_metadata).
+LEROBOT_V3_EPISODE_COLUMNS = ("episode_index", "dataset_from_index", "dataset_to_index", "data/chunk_index",
+                              "data/file_index")
+
+
+def _read_parquet(pq, path: str, columns: Sequence[str] | None = None, what: str = ""):
+    """A parquet table (``columns`` of it); an unreadable file is a ``DataValidationError`` naming it."""
+    import pyarrow as pa
+
+    try:
+        return pq.read_table(path, columns=None if columns is None else list(columns))
+    except (pa.ArrowException, OSError) as e:
+        raise DataValidationError(f"{path}: not a readable parquet file ({type(e).__name__}: {e}); expected "
+                                  f"{what or 'a LeRobot parquet file'}") from e
+
+
+def _int_column(table, name: str, path: str) -> np.ndarray:
+    arr = _arrow_to_numpy(table.column(name), f"{path}: column {name!r}")
+    if arr.dtype.kind not in "iu" or arr.ndim != 1:
+        raise DataValidationError(f"{path}: column {name!r} is {describe(arr)}, expected one integer per episode")
+    return arr.astype(np.int64)
+
+
+def _lerobot_v3_episodes(root: str, info: dict, info_path: str, pq) -> list[_LeRobotEpisode]:
+    """v3.0: episodes listed in ``meta/episodes/chunk-XXX/file-XXX.parquet`` (one row each) with their global frame
+    range ``dataset_from_index:dataset_to_index`` in the parquet file ``data/chunk_index``, ``data/file_index`` (its
+    rows follow those of the earlier files) and, per camera, the mp4 file ``videos/<key>/chunk_index``,
+    ``file_index`` and the episode's start ``videos/<key>/from_timestamp`` in it."""
+    meta_dir = os.path.join(root, "meta", "episodes")
+    meta_files = sorted(glob.glob(os.path.join(glob.escape(meta_dir), "*", "*.parquet")))
+    if not meta_files:
+        raise DataValidationError(f"{meta_dir}: missing; expected the per-episode metadata "
+                                  f"meta/episodes/chunk-XXX/file-XXX.parquet of a LeRobot v3.0 dataset "
+                                  f"(codebase_version in {info_path})")
+    rows: dict[int, dict] = {}
+    for path in meta_files:
+        names = _read_parquet_schema(pq, path, "LeRobot v3.0 episode metadata")
+        for c in LEROBOT_V3_EPISODE_COLUMNS:
+            if c not in names:
+                raise DataValidationError(f"{path}: missing column {c!r}; expected the LeRobot v3.0 episode columns "
+                                          f"{list(LEROBOT_V3_EPISODE_COLUMNS)}")
+        wanted = [c for c in names if c in LEROBOT_V3_EPISODE_COLUMNS or c == "length" or c.startswith("videos/")]
+        table = _read_parquet(pq, path, wanted, "LeRobot v3.0 episode metadata")
+        cols = {c: _int_column(table, c, path) for c in wanted if not c.startswith("videos/")}
+        # videos/<key>/... columns are read when that camera is imported (a camera left out may have gaps)
+        videos = {c: table.column(c) for c in wanted if c.startswith("videos/")}
+        for i in range(table.num_rows):
+            row = {**{c: v[i] for c, v in cols.items()}, "_videos": (videos, i)}
+            ep = int(row["episode_index"])
+            if ep in rows:
+                raise DataValidationError(f"{path}: episode_index {ep} is listed twice (also in {rows[ep]['_meta']}); "
+                                          f"expected each episode once")
+            start, stop = int(row["dataset_from_index"]), int(row["dataset_to_index"])
+            if start < 0 or stop < start:
+                raise DataValidationError(f"{path}: episode {ep}: dataset_from_index:dataset_to_index is "
+                                          f"{start}:{stop}, expected 0 <= from <= to")
+            if "length" in row and int(row["length"]) != stop - start:
+                raise DataValidationError(f"{path}: episode {ep}: column 'length' is {int(row['length'])}, expected "
+                                          f"{stop - start} (dataset_to_index {stop} - dataset_from_index {start})")
+            rows[ep] = {**row, "_meta": path}
+    if "total_episodes" in info and int(info["total_episodes"]) != len(rows):
+        listed = ", ".join(os.path.relpath(f, meta_dir) for f in meta_files)
+        raise DataValidationError(f"{info_path}: total_episodes is {int(info['total_episodes'])}, but {meta_dir} "
+                                  f"lists {len(rows)} episodes ({listed}); expected every episode listed once (is "
+                                  f"an episodes file missing?)")
+
+    data_example = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
+    video_example = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
+    # Data files in (chunk, file) order; each one's first row is the global frame index after the earlier files'.
+    files = sorted({(int(r["data/chunk_index"]), int(r["data/file_index"])) for r in rows.values()})
+    offsets: dict[tuple[int, int], tuple[str, int, int]] = {}
+    offset = 0
+    for chunk, file in files:
+        path = os.path.join(root, _format_path(info["data_path"], "data_path", info_path, data_example,
+                                               chunk_index=chunk, file_index=file))
+        if not os.path.isfile(path):
+            eps = sorted(ep for ep, r in rows.items() if (r["data/chunk_index"], r["data/file_index"]) == (chunk, file))
+            raise DataValidationError(f"{path}: missing parquet file of episodes {eps} (data/chunk_index {chunk}, "
+                                      f"data/file_index {file} in {rows[eps[0]]['_meta']}; data_path "
+                                      f"{info['data_path']!r})")
+        try:
+            num_rows = pq.read_metadata(path).num_rows
+        except Exception as e:  # pyarrow raises ArrowInvalid / OSError for a damaged footer
+            raise DataValidationError(f"{path}: not a readable parquet file ({type(e).__name__}: {e})") from e
+        offsets[(chunk, file)] = (path, offset, num_rows)
+        offset += num_rows
+
+    def video(row: dict) -> Callable[[str], tuple[str, float]]:
+        def path(key: str) -> tuple[str, float]:
+            videos, i = row["_videos"]
+            cols = [f"videos/{key}/chunk_index", f"videos/{key}/file_index", f"videos/{key}/from_timestamp"]
+            values = []
+            for c, kind in zip(cols, (int, int, float)):
+                if c not in videos:
+                    raise DataValidationError(f"{row['_meta']}: missing column {c!r} of video feature {key!r}; "
+                                              f"expected {cols}")
+                value = videos[c][i].as_py()
+                if not isinstance(value, (int, float)) or isinstance(value, bool) or \
+                        (kind is int and not float(value).is_integer()) or not np.isfinite(value):
+                    raise DataValidationError(f"{row['_meta']}: episode {int(row['episode_index'])}: column {c!r} "
+                                              f"holds {value!r}, expected {'an integer' if kind is int else 'seconds'}")
+                values.append(kind(value))
+            if not info.get("video_path"):
+                raise DataValidationError(f"{info_path}: feature {key!r} has dtype 'video' but info has no "
+                                          f"'video_path'")
+            return os.path.join(root, _format_path(info["video_path"], "video_path", info_path, video_example,
+                                                   video_key=key, chunk_index=values[0],
+                                                   file_index=values[1])), values[2]
+        return path
+
+    episodes = []
+    for ep in sorted(rows):
+        row = rows[ep]
+        path, first, num_rows = offsets[(int(row["data/chunk_index"]), int(row["data/file_index"]))]
+        start, stop = int(row["dataset_from_index"]), int(row["dataset_to_index"])
+        a, b = start - first, stop - first
+        if a < 0 or b > num_rows:
+            raise DataValidationError(f"{row['_meta']}: episode {ep}: dataset_from_index:dataset_to_index "
+                                      f"{start}:{stop} is rows {a}:{b} of {path}, which holds {num_rows} rows "
+                                      f"(dataset frames {first}:{first + num_rows}); expected the episode's frames "
+                                      f"inside its parquet file")
+        episodes.append(_LeRobotEpisode(ep, path, (a, b), None, start, video(row)))
+    return episodes
+
+
+def _read_parquet_schema(pq, path: str, what: str) -> list[str]:
+    try:
+        return list(pq.read_schema(path).names)
+    except Exception as e:  # pyarrow raises ArrowInvalid / OSError for a file that is not parquet
+        raise DataValidationError(f"{path}: not a readable parquet file ({type(e).__name__}: {e}); expected "
+                                  f"{what}") from e
 
 
 def _arrow_to_numpy(column, where: str) -> np.ndarray:
@@ -466,28 +677,49 @@ def _arrow_to_numpy(column, where: str) -> np.ndarray:
     return np.asarray(arr.to_numpy(zero_copy_only=False)).reshape(n, *shape)
 
 
-def _decode_video(path: str, timestamps: np.ndarray, fps: float, where: str) -> np.ndarray:
-    """Frames of ``path`` at ``timestamps`` (nearest frame, within half a frame period) -> ``(n, H, W, 3) uint8``."""
+def _decode_video(path: str, timestamps: np.ndarray, fps: float, where: str, start: float = 0.0) -> np.ndarray:
+    """Frames of ``path`` at ``start + timestamps`` seconds (nearest frame, within half a frame period)
+    -> ``(n, H, W, 3) uint8``.
+
+    ``start`` is the episode's first frame in a video that holds several episodes (v3.0 ``from_timestamp``): the
+    decoder seeks to the key frame before it and decodes only the episode's span.
+    """
     av = _optional_import("av", "decoding LeRobot videos")
     if not os.path.isfile(path):
         raise DataValidationError(f"{where}: missing video file {path}")
+    tolerance = 0.5 / fps
+    wanted = start + np.asarray(timestamps, np.float64)
+    lo, hi = float(wanted.min()) - tolerance, float(wanted.max()) + tolerance
+    decoded = []
     try:
         with av.open(path) as container:
-            decoded = [(float(fr.time) if fr.time is not None else i / fps, fr.to_ndarray(format="rgb24"))
-                       for i, fr in enumerate(container.decode(video=0))]
+            stream = container.streams.video[0]
+            seek = lo > 0 and stream.time_base is not None
+            if seek:
+                container.seek(int(lo / stream.time_base), stream=stream, backward=True, any_frame=False)
+            for i, fr in enumerate(container.decode(stream)):
+                if fr.time is None and seek:
+                    raise DataValidationError(f"{path}: frame {i} after seeking to {lo:.4f}s has no timestamp; "
+                                              f"expected timed frames")
+                t = float(fr.time) if fr.time is not None else i / fps
+                if t > hi:
+                    break
+                if t >= lo:
+                    decoded.append((t, fr.to_ndarray(format="rgb24")))
     except av.error.FFmpegError as e:
         raise DataValidationError(f"{path}: cannot decode video ({e})") from e
     if not decoded:
-        raise DataValidationError(f"{path}: no video frames; expected {len(timestamps)}")
+        raise DataValidationError(f"{path}: no video frames at {lo + tolerance:.4f}s-{hi - tolerance:.4f}s; expected "
+                                  f"{len(timestamps)} frames for {where}")
     times = np.asarray([t for t, _ in decoded])
-    nearest = np.abs(times[None, :] - timestamps[:, None]).argmin(axis=1)
-    error = np.abs(times[nearest] - timestamps)
-    tolerance = 0.5 / fps
+    nearest = np.abs(times[None, :] - wanted[:, None]).argmin(axis=1)
+    error = np.abs(times[nearest] - wanted)
     if (error > tolerance).any():
         i = int(np.argmax(error > tolerance))
+        in_file = f" (+ from_timestamp {start:.4f}s = {wanted[i]:.4f}s in the file)" if start else ""
         raise DataValidationError(f"{path}: no video frame within {tolerance:.4f}s of frame {i}'s timestamp "
-                                  f"{timestamps[i]:.4f}s (nearest {times[nearest[i]]:.4f}s; the video has "
-                                  f"{len(times)} frames, {times[0]:.4f}s-{times[-1]:.4f}s)")
+                                  f"{timestamps[i]:.4f}s{in_file} (nearest {times[nearest[i]]:.4f}s; decoded "
+                                  f"{len(times)} frames at {times[0]:.4f}s-{times[-1]:.4f}s) for {where}")
     return np.stack([decoded[j][1] for j in nearest])
 
 
@@ -532,12 +764,20 @@ def _check_feature(arr: np.ndarray, feature: dict, where: str) -> np.ndarray:
 
 def import_lerobot(src: str | os.PathLike, key_map: KeyMap | None = None,
                    min_length: int = 1) -> tuple[ReplayBuffer, ImportSummary]:
-    """Import a local LeRobot v2.x dataset folder -> ``(buffer, summary)``.
+    """Import a local LeRobot dataset folder, v2.x or v3.0 (``codebase_version`` in ``meta/info.json``)
+    -> ``(buffer, summary)``.
 
-    Checks per episode: ``episode_index`` equals the file's episode, ``frame_index`` is ``0..n-1``, ``timestamp``
-    strictly increases, the length matches ``meta/episodes.jsonl``, and each column's dtype and per-frame shape
-    match ``features`` in ``meta/info.json``. Video frames are matched to the parquet timestamps (nearest frame,
-    within half a period of ``fps``).
+    Layouts: v2.x has one parquet file (and one mp4 per camera) per episode, listed in ``meta/episodes.jsonl``;
+    v3.0 groups episodes in ``data/chunk-XXX/file-XXX.parquet`` and ``videos/<key>/chunk-XXX/file-XXX.mp4`` files,
+    each episode located by its row in ``meta/episodes/chunk-XXX/file-XXX.parquet`` (``dataset_from_index``,
+    ``dataset_to_index``, ``data/chunk_index``, ``data/file_index``, ``videos/<key>/from_timestamp`` ...). Any other
+    version is refused, naming the supported ones.
+
+    Checks per episode, in both layouts: its rows lie inside its parquet file (v3.0), ``episode_index`` equals the
+    episode, the global ``index`` runs ``dataset_from_index..dataset_to_index - 1`` (v3.0), ``frame_index`` is
+    ``0..n-1``, ``timestamp`` strictly increases, the length matches the metadata, and each column's dtype and
+    per-frame shape match ``features`` in ``meta/info.json``. Video frames are decoded at the parquet timestamps
+    (plus the episode's ``from_timestamp`` in a v3.0 file): nearest frame, within half a period of ``fps``.
     """
     pq = _optional_import("pyarrow.parquet", "importing LeRobot datasets")
     root = os.fspath(src)
@@ -546,29 +786,27 @@ def import_lerobot(src: str | os.PathLike, key_map: KeyMap | None = None,
     info_path = os.path.join(root, "meta", "info.json")
     info = _read_json(info_path)
     version = str(info.get("codebase_version", ""))
-    if not version.startswith("v2"):
-        raise DataValidationError(f"{info_path}: codebase_version {version or None!r}, expected a LeRobot v2.x "
-                                  f"dataset (one parquet file per episode)")
+    layout = _lerobot_layout(version)
+    if layout is None:
+        raise DataValidationError(f"{info_path}: codebase_version {version or None!r} is not supported; supported "
+                                  f"versions: {LEROBOT_VERSIONS}")
     for field in ("fps", "features", "data_path"):
         if field not in info:
             raise DataValidationError(f"{info_path}: missing key {field!r}")
     fps, features = float(info["fps"]), info["features"]
-    chunks_size = int(info.get("chunks_size", 1000))
-    episodes_list = _lerobot_episodes(root, info)
+    if layout == "v2":
+        episodes_list = _lerobot_v2_episodes(root, info, info_path)
+        listed_in = os.path.join(root, "meta", "episodes.jsonl")
+    else:
+        episodes_list = _lerobot_v3_episodes(root, info, info_path, pq)
+        listed_in = os.path.join(root, "meta", "episodes")
     if not episodes_list:
-        raise DataValidationError(f"{root}: no episodes listed in meta/episodes.jsonl")
-
-    def data_file(ep: int) -> str:
-        return os.path.join(root, info["data_path"].format(episode_chunk=ep // chunks_size, episode_index=ep))
-
-    def video_file(ep: int, key: str) -> str:
-        if "video_path" not in info or not info["video_path"]:
-            raise DataValidationError(f"{info_path}: feature {key!r} has dtype 'video' but info has no 'video_path'")
-        return os.path.join(root, info["video_path"].format(episode_chunk=ep // chunks_size, video_key=key,
-                                                            episode_index=ep))
+        raise DataValidationError(f"{listed_in}: no episodes listed; expected at least one")
 
     available = sorted(k for k in features if k not in LEROBOT_INDEX_COLUMNS)
-    notes = []
+    num_files = len({e.data_path for e in episodes_list})
+    notes = [] if layout == "v2" else [f"LeRobot {version}: {len(episodes_list)} episodes in {num_files} parquet "
+                                       f"file{'s' if num_files != 1 else ''}"]
     if key_map is None:
         key_map = {}
         if "observation.state" in features:
@@ -577,8 +815,9 @@ def import_lerobot(src: str | os.PathLike, key_map: KeyMap | None = None,
         cameras = [k for k, f in features.items() if f.get("dtype") in ("video", "image")]
         present = []
         for cam in cameras:
-            if features[cam]["dtype"] == "video" and not os.path.isfile(video_file(episodes_list[0][0], cam)):
-                notes.append(f"video feature {cam} not imported: {video_file(episodes_list[0][0], cam)} missing")
+            vpath = episodes_list[0].video(cam)[0] if features[cam]["dtype"] == "video" else None
+            if vpath is not None and not os.path.isfile(vpath):
+                notes.append(f"video feature {cam} not imported: {vpath} missing")
             else:
                 present.append(cam)
         for cam in present:
@@ -587,67 +826,89 @@ def import_lerobot(src: str | os.PathLike, key_map: KeyMap | None = None,
     _check_sources_exist(key_map, list(features), f"{info_path}: features")
     used = list(dict.fromkeys(s for sources in key_map.values() for s in sources))
     columns = [s for s in used if features[s].get("dtype") != "video"]
+    cache: dict[str, tuple[list[str], object]] = {}  # the last parquet file read (v3.0: several episodes each)
 
-    def loader(ep: int, declared: int | None) -> EpisodeLoader:
-        def load():
-            path = data_file(ep)
+    def read_table(path: str, ep: int):
+        if path not in cache:
+            cache.clear()
             if not os.path.isfile(path):
                 raise DataValidationError(f"{path}: missing parquet file of episode {ep} (data_path "
                                           f"{info['data_path']!r})")
-            schema_names = pq.read_schema(path).names
+            names = _read_parquet_schema(pq, path, "LeRobot frame data")
             for c in columns:
-                if c not in schema_names:
-                    raise DataValidationError(f"{path}: missing column {c!r}; columns {schema_names}")
-            index_cols = [c for c in ("episode_index", "frame_index", "timestamp") if c in schema_names]
-            table = pq.read_table(path, columns=list(dict.fromkeys(columns + index_cols)))
+                if c not in names:
+                    raise DataValidationError(f"{path}: missing column {c!r}; columns {names}")
+            index_cols = [c for c in ("episode_index", "index", "frame_index", "timestamp") if c in names]
+            cache[path] = (index_cols, _read_parquet(pq, path, dict.fromkeys(columns + index_cols),
+                                                     "LeRobot frame data"))
+        return cache[path]
+
+    def loader(episode: _LeRobotEpisode) -> EpisodeLoader:
+        def load():
+            ep, path = episode.index, episode.data_path
+            index_cols, table = read_table(path, ep)
+            row0 = 0
+            if episode.rows is not None:
+                row0 = episode.rows[0]
+                table = table.slice(row0, episode.rows[1] - row0)
             n = table.num_rows
+            label = episode.where if episode.rows is not None else path
+
+            def column(name: str) -> np.ndarray:
+                return _arrow_to_numpy(table.column(name), f"{label}: column {name!r}").ravel()
+
             if "episode_index" in index_cols:
-                got = _arrow_to_numpy(table.column("episode_index"), f"{path}: column 'episode_index'").ravel()
+                got = column("episode_index")
                 if (got != ep).any():
-                    raise DataValidationError(f"{path}: column 'episode_index' holds {sorted(set(got.tolist()))}, "
+                    raise DataValidationError(f"{label}: column 'episode_index' holds {sorted(set(got.tolist()))}, "
                                               f"expected only {ep}")
+            if "index" in index_cols and episode.first_index is not None:
+                got, expected = column("index"), np.arange(episode.first_index, episode.first_index + n)
+                if not np.array_equal(got, expected):
+                    bad = int(np.argmax(got != expected))
+                    raise DataValidationError(f"{label}: column 'index' is not the episode's dataset_from_index.."
+                                              f"dataset_to_index - 1 = {expected[0]}..{expected[-1]}: row "
+                                              f"{row0 + bad} holds {int(got[bad])}, expected {int(expected[bad])}")
             if "frame_index" in index_cols:
-                got = _arrow_to_numpy(table.column("frame_index"), f"{path}: column 'frame_index'").ravel()
+                got = column("frame_index")
                 if not np.array_equal(got, np.arange(n)):
                     bad = int(np.argmax(got != np.arange(n)))
-                    raise DataValidationError(f"{path}: column 'frame_index' is not 0..{n - 1} in order: row {bad} "
-                                              f"holds {int(got[bad])}, expected {bad}")
+                    raise DataValidationError(f"{label}: column 'frame_index' is not 0..{n - 1} in order: row "
+                                              f"{row0 + bad} holds {int(got[bad])}, expected {bad}")
             if "timestamp" in index_cols:
-                ts = _arrow_to_numpy(table.column("timestamp"), f"{path}: column 'timestamp'").ravel()
-                ts = ts.astype(np.float64)
+                ts = column("timestamp").astype(np.float64)
                 if n > 1 and not (np.diff(ts) > 0).all():
                     bad = int(np.argmax(np.diff(ts) <= 0)) + 1
-                    raise DataValidationError(f"{path}: column 'timestamp' must strictly increase: row {bad} is "
-                                              f"{ts[bad]:.6f}s after {ts[bad - 1]:.6f}s")
+                    raise DataValidationError(f"{label}: column 'timestamp' must strictly increase: row {row0 + bad} "
+                                              f"is {ts[bad]:.6f}s after {ts[bad - 1]:.6f}s")
             else:
                 ts = np.arange(n, dtype=np.float64) / fps
-            if declared is not None and declared != n:
-                raise DataValidationError(f"{path}: {n} rows, expected {declared} (the length of episode {ep} in "
-                                          f"meta/episodes.jsonl)")
+            if episode.length is not None and episode.length != n:
+                raise DataValidationError(f"{path}: {n} rows, expected {episode.length} (the length of episode {ep} "
+                                          f"in meta/episodes.jsonl)")
             arrays, sources = {}, {}
             for s in used:
                 feature = features[s]
                 if feature.get("dtype") == "video":
-                    vpath = video_file(ep, s)
-                    arrays[s] = _decode_video(vpath, ts, fps, f"{path}: feature {s!r}") if n else \
+                    vpath, start = episode.video(s)
+                    arrays[s] = _decode_video(vpath, ts, fps, f"{label}: feature {s!r}", start) if n else \
                         np.zeros((0, *feature.get("shape", (0, 0, 3))), np.uint8)
                     sources[s] = os.path.relpath(vpath, root)
                 elif feature.get("dtype") == "image":
-                    arrays[s] = _decode_images(table.column(s), f"{path}: column {s!r}")
+                    arrays[s] = _decode_images(table.column(s), f"{label}: column {s!r}")
                     sources[s] = s
                 else:
-                    arrays[s] = _check_feature(_arrow_to_numpy(table.column(s), f"{path}: column {s!r}"), feature,
-                                               f"{path}: column {s!r}")
+                    arrays[s] = _check_feature(_arrow_to_numpy(table.column(s), f"{label}: column {s!r}"), feature,
+                                               f"{label}: column {s!r}")
                     sources[s] = s
                 if feature.get("dtype") in ("video", "image") and n:
-                    _check_image_shape(arrays[s], feature, f"{path}: feature {s!r} ({sources[s]})")
-            where = f"{path} (episode {ep})"
+                    _check_image_shape(arrays[s], feature, f"{label}: feature {s!r} ({sources[s]})")
+            where = episode.where
             out = {k: _concat_sources([(s, arrays[s]) for s in v], k, where) for k, v in key_map.items()}
             return out, {k: ",".join(sources[s] for s in v) for k, v in key_map.items()}
         return load
 
-    episodes = ((f"episode {ep}", f"{data_file(ep)} (episode {ep})", loader(ep, declared))
-                for ep, declared in episodes_list)
+    episodes = ((f"episode {e.index}", e.where, loader(e)) for e in episodes_list)
     notes += _unused_note(available, key_map)
     return _assemble(root, "lerobot", key_map, min_length, episodes, notes)
 
