@@ -68,6 +68,10 @@ def test_upgrade_v1_supersedes_the_evaluations_of_an_earlier_training():
     assert sorted(out["evaluations"]) == sorted([_key("te"), _key("aac")])
     assert list(out["superseded"][0]["evaluations"]) == [_key("chunk")]
     assert out["superseded"][0]["evaluations"][_key("chunk")]["network"]["final_loss"] == 0.25
+    # the superseded entry names the network its evaluations were made on; the record's training summary was the
+    # later network's, so it does not travel with them
+    assert out["superseded"][0]["network"] == {"params_sha256": None, "final_loss": 0.25}
+    assert "training" not in out["superseded"][0]
     assert rec_lib.problems(out) == [] and rec_lib.upgrade_v1(out, {}) == out
     assert rec_lib.problems(record) == ["version 1 (< 2): no network fingerprints"]
     mixed = copy.deepcopy(out)

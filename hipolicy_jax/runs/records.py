@@ -76,9 +76,20 @@ def supersede(record: dict, net: dict) -> dict:
     keep, moved = {}, {}
     for key, ev in out.get("evaluations", {}).items():
         (keep if same_network(ev.get("network"), net) else moved)[key] = ev
-    if moved:
-        entry = {"network": old, "training": out.get("training"), "calibration": out.get("calibration"),
-                 "evaluations": moved}
+    groups: list[tuple[dict | None, dict]] = []  # the moved evaluations by the network each was made on
+    for key, ev in moved.items():
+        net_of = ev.get("network") or old
+        for known, evs in groups:
+            if known == net_of:
+                evs[key] = ev
+                break
+        else:
+            groups.append((net_of, {key: ev}))
+    for net_of, evs in groups:
+        entry = {"network": net_of, "evaluations": evs}
+        if same_network(net_of, old):  # the training summary and calibration the record held were this network's
+            entry = {"network": net_of, "training": out.get("training"), "calibration": out.get("calibration"),
+                     "evaluations": evs}
         out["superseded"] = [*out.get("superseded", []), entry]
     out["evaluations"] = keep
     out["network"] = merged(net, old) if same_network(old, net) else dict(net)
