@@ -121,41 +121,93 @@ def test_evaluate_checkpoints_dir_and_threshold_override(tiny, tmp_path):
 
 
 def test_one_evaluator_two_checkpoints_one_compile(tiny):
-    """An ``Evaluator`` owns its compiled rollout: two checkpoints of a run, with and without entropy guidance, one
-    compile; a second ``Evaluator`` compiles on its own (there is no global cache)."""
+    """An ``Evaluator`` owns its compiled rollout, not the parameters: three parameter sets (two checkpoints of a run
+    and the last one scaled by 1/2), with and without entropy guidance, one compile, and each set gives its own
+    decisions (the first decision's entropy, from the same reset and key, differs between every two sets; the same
+    set gives the same entropy again, also from a second ``Evaluator``, which compiles on its own: there is no
+    global cache). Without entropy guidance every decision runs stride 1."""
     _, run = tiny
     first, last = load_run(run, 6), load_run(run, SMOKE.train.num_steps)
+    halved = jax.tree.map(lambda x: x * 0.5 if jax.numpy.issubdtype(x.dtype, jax.numpy.floating) else x,
+                          last.policy.params)
     ev = make_evaluator(last, SMOKE.inference)
     th = (-math.inf, -1.0, 1.0, math.inf)
-    results = [ev.evaluate(r.policy.params, r.policy.normalizer, 2, jax.random.key(0), th, guided)
-               for r in (first, last) for guided in (True, False)]
+    sets = {"first": (first.policy.params, first.policy.normalizer),
+            "last": (last.policy.params, last.policy.normalizer), "halved": (halved, last.policy.normalizer)}
+    results = {(name, guided): ev.evaluate(params, norm, 2, jax.random.key(0), th, guided)
+               for name, (params, norm) in sets.items() for guided in (True, False)}
     assert ev.traces == 1
-    assert all(r.steps.shape == (2,) for r in results)
+    assert all(r.steps.shape == (2,) for r in results.values())
+    h0 = {k: np.asarray(r.entropy)[:, 0] for k, r in results.items()}  # decision 0: valid in every episode
+    for a, b in [("first", "last"), ("first", "halved"), ("last", "halved")]:
+        assert np.abs(h0[a, True] - h0[b, True]).min() > 1e-4, (a, b, h0[a, True], h0[b, True])
+    for name in sets:  # guidance only changes the stride: the first decision's samples are the same
+        np.testing.assert_allclose(h0[name, False], h0[name, True], rtol=1e-6)
+        r = results[name, False]
+        assert (np.asarray(r.stride)[np.asarray(r.valid)] == 1).all()
     other = make_evaluator(last, SMOKE.inference)
-    other.evaluate(last.policy.params, last.policy.normalizer, 2, jax.random.key(0), th)
+    again = other.evaluate(last.policy.params, last.policy.normalizer, 2, jax.random.key(0), th)
     assert other.traces == 1 and ev.traces == 1
+    np.testing.assert_allclose(np.asarray(again.entropy)[:, 0], h0["last", True], rtol=1e-5)
 
 
 @pytest.mark.slow
-def test_execution_strategies_in_closed_loop(tiny, tmp_path):
-    """AAC from experiments.evaluate (decisions execute 1..L_c actions) and temporal ensembling through an
-    Evaluator (one decision and one action per control step)."""
+def test_execution_strategies_in_closed_loop(tiny):
+    """Closed loop on the trained run (2 episodes, 24 control steps, L_c = 8, no entropy guidance), the decision
+    counts tell the strategies apart:
+
+    - chunk: a decision every L_c steps, decisions = ceil(steps / L_c), each executing L_c (the last: what is left);
+    - TE (temporal ensembling): a decision at every control step, decisions = steps, one action each;
+    - AAC: each decision executes the k* of its N samples and the next starts where it ended; the first decision's
+      k* is recomputed by hand from the sampler's chunks for the same reset and key (per-step entropies of the
+      selected frequency, H(k) the running mean, k* at the largest jump), and is < L_c here, so AAC decides more
+      often than chunk execution and less often than TE."""
     _, run = tiny
-    report = evaluate.main(parse_with_run_inference(evaluate.EvaluateArgs, [
-        "--checkpoint", run, "--episodes", "2", "--inference.execution", "aac", "--video", "none",
-        "--out", str(tmp_path / "aac")]))
-    assert report["inference"]["execution"] == "aac"
-    for key in ("with_eg", "without_eg"):
-        s = report[key]
-        assert 1.0 <= s["mean_actions_per_decision"] <= 8.0
-        assert s["mean_decisions"] * s["mean_actions_per_decision"] == pytest.approx(s["mean_steps"], rel=1e-6)
     last = load_run(run)
-    ev = make_evaluator(last, dataclasses.replace(SMOKE.inference, execution="te"), max_steps=12)
-    res = ev.evaluate(last.policy.params, last.policy.normalizer, 2, jax.random.key(0))
-    valid = np.asarray(res.valid)
-    assert valid.shape == (2, 12) and (valid.sum(axis=1) == np.asarray(res.steps)).all()
-    assert (np.asarray(res.executed)[valid] == 1).all()
-    np.testing.assert_array_equal(np.asarray(res.start)[0, :int(res.steps[0])], np.arange(int(res.steps[0])))
+    cfg, limit, episodes, key = last.policy.cfg, 24, 2, jax.random.key(0)
+    lc, m = cfg.chunk.chunk_len, cfg.chunk.num_freqs
+    params, norm = last.policy.params, last.policy.normalizer
+    from hipolicy_jax.evaluation.evaluator import eval_summary
+    out = {}
+    for kind in ("chunk", "te", "aac"):  # --inference.execution of experiments.evaluate, the rest the run's
+        inference = parse_with_run_inference(evaluate.EvaluateArgs, ["--checkpoint", run, "--inference.execution",
+                                                                     kind]).inference
+        assert inference == dataclasses.replace(SMOKE.inference, execution=kind)
+        ev = make_evaluator(last, inference, max_steps=limit)
+        res = ev.evaluate(params, norm, episodes, key, entropy_guided=False)
+        valid, steps = np.asarray(res.valid), np.asarray(res.steps)
+        decisions = valid.sum(axis=1)
+        s = eval_summary(res)  # the report's columns
+        assert s["mean_decisions"] == pytest.approx(decisions.mean(), rel=1e-6)
+        assert s["mean_decisions"] * s["mean_actions_per_decision"] == pytest.approx(s["mean_steps"], rel=1e-6)
+        for e in range(episodes):
+            n, executed, start = decisions[e], np.asarray(res.executed)[e, :decisions[e]], np.asarray(res.start)[e]
+            assert valid[e, :n].all() and executed.sum() == steps[e] and 1 <= steps[e] <= limit
+            np.testing.assert_array_equal(start[:n], np.concatenate([[0], np.cumsum(executed)[:-1]]))
+            if kind == "chunk":
+                assert n == math.ceil(steps[e] / lc) and (executed[:-1] == lc).all()
+            elif kind == "te":
+                assert n == steps[e] and (executed == 1).all()
+            else:
+                assert math.ceil(steps[e] / lc) <= n <= steps[e] and ((executed >= 1) & (executed <= lc)).all()
+        out[kind] = (ev, res, decisions)
+
+    ev, res, decisions = out["aac"]  # its first decisions, recomputed outside the rollout
+    from hipolicy_jax.evaluation import calibration
+    from hipolicy_jax.evaluation.policy import PolicyArgs, make_decision_fn
+    from hipolicy_jax.evaluation.rollout import init_history
+    decide = make_decision_fn(ev.net, cfg, last.action_dim, ev.inference)
+    args = PolicyArgs(params, norm, calibration.guidance_thresholds(None, m, False))
+    for e, k_episode in enumerate(jax.random.split(key, episodes)):  # as the rollout derives its keys
+        k_reset, _, k_policy = jax.random.split(k_episode, 3)
+        d = decide(init_history(ev.env.reset(k_reset).obs, cfg.chunk.obs_span), jax.random.fold_in(k_policy, 0), args)
+        assert float(d.entropy) == pytest.approx(float(res.entropy[e, 0]), rel=1e-4)  # the rollout's decision
+        segment = np.asarray(d.chunks, np.float64).reshape(-1, m, lc, last.action_dim)[:, m - 1 - int(d.freq_index)]
+        h = np.mean(0.5 * np.log(2 * np.pi * np.e * segment.var(axis=0, ddof=1) + 1e-6), axis=-1)  # (L_c,)
+        jumps = np.diff(np.cumsum(h) / np.arange(1, lc + 1))  # H(k+1) − H(k), k = 1..L_c−1
+        k_star = int(np.argmax(jumps)) + 1 if jumps.max() > 0 else lc
+        assert k_star < lc and int(res.executed[e, 0]) == k_star
+        assert out["chunk"][2][e] < decisions[e] < out["te"][2][e]
 
 
 def test_asynchronous_execution_in_closed_loop(tiny):
