@@ -1,14 +1,19 @@
-"""Policy serving latency and throughput: the in-process decision, the exported program, and the websocket round
-trip on loopback, side by side; then a load test of concurrent clients.
+"""Policy serving latency and throughput: the in-process decision, the exported program and the websocket round
+trip on loopback side by side; the decision's cost per batch size; then load tests of one and of several
+concurrent clients against the micro-batching server (and against the same server without batching).
 
-    python -m benchmarks.serving                     # the cpu-budget HiPolicy press_button run
-    python -m benchmarks.serving --run RUN_DIR --calls 30 --clients 4 --requests 250
+    python -m benchmarks.serving                     # the cpu-budget HiPolicy press_button policy
+    python -m benchmarks.serving --run RUN_DIR --clients 8 --requests 40 --time-limit 240
 
-One observation history (B = 1) per call. The three single-call paths are timed interleaved (in-process jit,
-exported program in-process, client → ``experiments.serve --export`` in a subprocess → client), each call ending
-when its result is on the host; the load test then runs ``--clients`` threads of ``--requests`` requests each
-against the same server and reports requests/s and the round-trip p50 / p99. Writes
-``benchmarks/results/serving_<device>.json``.
+The policy is the trained run ``--run`` when it exists, else the same network (the cpu budget's HiPolicy config:
+CPU U-Net, strides 1/2/3, N = 16, DDIM 10) freshly initialised: the compute is the same. One observation history
+per request. The single-call paths are timed interleaved (in-process jit, exported program in-process, client →
+``experiments.serve --export`` in a subprocess → client), each call ending when its result is on the host. The
+load tests are bounded: fixed request counts per client, a wall-clock limit (clients stop issuing requests once
+it is spent; reported), loopback only (``127.0.0.1``). Clients send observations only (as openpi's client does),
+each its own. Targets: ``--clients`` clients reach ≥ 1.4x the requests/s of one client, with a p99 round trip
+≤ 3x one client's p50. On a shared machine pause other jobs first. Writes
+``benchmarks/results/serving_<device>.json`` (with the CPU model from ``lscpu``).
 """
 
 from __future__ import annotations
@@ -24,21 +29,62 @@ import time
 import jax
 import numpy as np
 
-from benchmarks.common import base_parser, latency_stats, markdown_table, report_rows
+from benchmarks.common import base_parser, example_obs, latency_stats, markdown_table, report_rows
+from hipolicy_jax import envs
+from hipolicy_jax.data.normalizer import Normalizer
 from hipolicy_jax.deploy.backend import ExportedBackend, InProcessBackend
 from hipolicy_jax.deploy.client import PolicyClient
 from hipolicy_jax.deploy.export import export_backend
+from hipolicy_jax.models.policy_net import init_policy_params
+from hipolicy_jax.runs.budgets import BUDGETS
+from hipolicy_jax.runs.cli import enable_compilation_cache
 
 NAME = "serving"
+TARGET_THROUGHPUT = 1.4  # requests/s of N clients over one client's
+TARGET_P99 = 3.0  # N clients' p99 round trip over one client's p50
 
 
 def parse_args(argv=None):
     p = base_parser(NAME, __doc__)
     p.add_argument("--run", default="runs/paper/cpu/press_button/state/hipolicy/seed0")
-    p.add_argument("--calls", type=int, default=30, help="timed calls per path (interleaved)")
-    p.add_argument("--clients", type=int, default=4)
-    p.add_argument("--requests", type=int, default=250, help="requests per client in the load test")
+    p.add_argument("--calls", type=int, default=20, help="timed calls per single-call path (interleaved)")
+    p.add_argument("--batches", type=int, nargs="+", default=[1, 2, 4, 8], help="batch sizes of the scaling rows")
+    p.add_argument("--clients", type=int, default=8, help="concurrent clients of the load test")
+    p.add_argument("--requests", type=int, default=40, help="requests per client in the load tests")
+    p.add_argument("--max-batch", type=int, default=8, help="the server's micro-batch limit")
+    p.add_argument("--batch-window-ms", type=float, default=5.0)
+    p.add_argument("--time-limit", type=float, default=240.0, help="seconds per load test at most")
+    p.add_argument("--no-unbatched", action="store_true", help="skip the load test against --max-batch 1")
     return p.parse_args(argv)
+
+
+def cpu_model() -> str:
+    """``lscpu``'s model name (``/proc/cpuinfo`` when lscpu is missing)."""
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True, timeout=30).stdout
+    except (OSError, subprocess.SubprocessError):
+        out = open("/proc/cpuinfo").read() if os.path.exists("/proc/cpuinfo") else ""
+    for line in out.splitlines():
+        if line.lower().startswith(("model name", "model name\t")):
+            return line.split(":", 1)[1].strip()
+    return "unknown"
+
+
+def make_backend(run: str) -> tuple[InProcessBackend, str]:
+    """The run's policy, else the cpu budget's HiPolicy press_button network freshly initialised."""
+    if os.path.isdir(run):
+        return InProcessBackend.from_run(run), os.path.relpath(run)
+    budget, env = BUDGETS["cpu"], envs.make("press_button")
+    cfg, key = budget.policy, jax.random.key(0)
+    params = init_policy_params(cfg, env.action_dim, example_obs(cfg, 1, key, env.state_dim), key)
+    rng = np.random.default_rng(0)
+    normalizer = Normalizer.fit({"state": rng.random((256, env.state_dim), np.float32),
+                                 "action": rng.random((256, env.action_dim), np.float32)})
+    backend = InProcessBackend(task="press_button", cfg=cfg, action_dim=env.action_dim, params=params,
+                               normalizer=normalizer, inference=budget.inference,
+                               thresholds=np.array([-np.inf, 0.0, 1.0, np.inf], np.float32),
+                               thresholds_source="benchmark (untrained network)")
+    return backend, f"{run} is missing: the cpu-budget HiPolicy network, freshly initialised (same compute)"
 
 
 def _free_port() -> int:
@@ -47,10 +93,12 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(export_dir: str, port: int) -> subprocess.Popen:
+def start_server(export_dir: str, port: int, max_batch: int, window_ms: float) -> subprocess.Popen:
     repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    proc = subprocess.Popen([sys.executable, "-m", "experiments.serve", "--export", export_dir, "--port", str(port)],
-                            cwd=repo, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen([sys.executable, "-m", "experiments.serve", "--export", export_dir, "--port", str(port),
+                             "--max-batch", str(max_batch), "--batch-window-ms", str(window_ms)],
+                            cwd=repo, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env={**os.environ, "HIPOLICY_API_KEY": ""})
     line = proc.stdout.readline()
     if "serving" not in line:
         proc.kill()
@@ -59,18 +107,25 @@ def start_server(export_dir: str, port: int) -> subprocess.Popen:
     return proc
 
 
-def load_test(url: str, obs: dict, clients: int, requests: int) -> dict:
-    latencies, failures = [], []
+def load_test(url: str, histories: list[dict], clients: int, requests: int, time_limit: float) -> dict:
+    """``clients`` threads, one connection each, ``requests`` requests each (fewer once ``time_limit`` is spent)."""
+    latencies, batches, failures = [], [], []
+    deadline = time.perf_counter() + time_limit
 
     def loop(c):
         try:
             with PolicyClient(url) as client:
+                obs = histories[c % len(histories)]
+                client.infer(obs)  # connect and warm this connection (not timed)
                 for i in range(requests):
+                    if time.perf_counter() > deadline:
+                        break
                     t0 = time.perf_counter()
-                    reply = client.request({"type": "infer", "obs": obs, "seed": i, "id": c * requests + i})
+                    reply = client.infer(obs)
                     latencies.append(time.perf_counter() - t0)
-                    if reply.get("id") != c * requests + i:
-                        failures.append((c, i))
+                    batches.append(reply["server_timing"]["batch"])
+                    if reply["decision"] != i + 1:
+                        failures.append((c, i, reply["decision"]))
         except Exception as e:  # noqa: BLE001 - counted as a failure
             failures.append((c, repr(e)))
 
@@ -82,27 +137,34 @@ def load_test(url: str, obs: dict, clients: int, requests: int) -> dict:
         t.join()
     wall = time.perf_counter() - t0
     lat = np.asarray(latencies) * 1e3
-    return {"clients": clients, "requests_per_client": requests, "replies": len(latencies), "failures": len(failures),
+    return {"clients": clients, "requests_per_client": requests, "replies": len(latencies),
+            "failures": len(failures), "stopped_by_time_limit": len(latencies) < clients * requests,
             "wall_s": wall, "requests_per_s": len(latencies) / wall, "p50_ms": float(np.percentile(lat, 50)),
-            "p99_ms": float(np.percentile(lat, 99))}
+            "p90_ms": float(np.percentile(lat, 90)), "p99_ms": float(np.percentile(lat, 99)),
+            "max_ms": float(lat.max()), "mean_batch": float(np.mean(batches))}
 
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
-    backend = InProcessBackend.from_run(args.run)
+    enable_compilation_cache()
+    backend, source = make_backend(args.run)
     meta = backend.metadata
     rng = np.random.default_rng(0)
-    obs = {k: rng.normal(size=s["shape"]).astype(s["dtype"]) for k, s in meta["obs"].items()}
-    with tempfile.TemporaryDirectory() as tmp:
-        export_backend(backend, os.path.join(tmp, "policy"))
-        exported = ExportedBackend(os.path.join(tmp, "policy"))
-        port = _free_port()
-        server = start_server(os.path.join(tmp, "policy"), port)
-        try:
+    histories = [{k: rng.normal(size=s["shape"]).astype(s["dtype"]) for k, s in meta["obs"].items()}
+                 for _ in range(max(args.clients, 1))]
+    obs = histories[0]
+    key = lambda i: np.asarray(jax.random.key_data(jax.random.key(i)))[None]  # noqa: E731
+    procs = []
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            directory = os.path.join(tmp, "policy")
+            export_backend(backend, directory)
+            exported = ExportedBackend(directory)
+            port = _free_port()
+            procs.append(start_server(directory, port, args.max_batch, args.batch_window_ms))
             url = f"ws://127.0.0.1:{port}"
             client = PolicyClient(url)
             batch = {k: v[None] for k, v in obs.items()}
-            key = lambda i: np.asarray(jax.random.key_data(jax.random.key(i)))[None]  # noqa: E731
             paths = {"in-process (jit)": lambda i: backend.decide(batch, key(i)),
                      "exported program": lambda i: exported.decide(batch, key(i)),
                      "websocket round trip": lambda i: client.infer(obs, key(i)[0])}
@@ -116,24 +178,65 @@ def main(argv=None) -> dict:
                     out = fn(i)
                     times[name].append(time.perf_counter() - t0)
                     if name == "websocket round trip":
-                        server_ms.append(out["server_ms"])
+                        server_ms.append(out["server_timing"]["infer_ms"])
             client.close()
-            load = load_test(url, obs, args.clients, args.requests)
-        finally:
-            server.terminate()
-            server.wait(timeout=60)
+            scaling = []
+            for b in args.batches:  # the exported program's cost per batch size (what the server runs)
+                rows = {k: np.stack([histories[i % len(histories)][k] for i in range(b)]) for k in meta["obs"]}
+                keys = np.stack([key(i)[0] for i in range(b)])
+                exported.decide(rows, keys)
+                t = []
+                for _ in range(max(3, args.calls // 2)):
+                    t0 = time.perf_counter()
+                    exported.decide(rows, keys)
+                    t.append(time.perf_counter() - t0)
+                scaling.append({"batch": b, "median_ms": 1e3 * float(np.median(t))})
+            for row in scaling:
+                row["ms_per_row"] = row["median_ms"] / row["batch"]
+                row["throughput_x_batch1"] = scaling[0]["ms_per_row"] / row["ms_per_row"]
+            one = load_test(url, histories, 1, args.requests, args.time_limit)
+            many = load_test(url, histories, args.clients, args.requests, args.time_limit)
+            procs.pop().terminate()
+            unbatched = None
+            if not args.no_unbatched:
+                port = _free_port()
+                procs.append(start_server(directory, port, 1, 0.0))
+                unbatched = load_test(f"ws://127.0.0.1:{port}", histories, args.clients,
+                                      max(args.requests // 2, 1), args.time_limit)
+    finally:
+        for p in procs:
+            p.terminate()
+            p.wait(timeout=60)
     base = np.median(times["in-process (jit)"])
     rows = [{"path": name, **{k: v * 1e3 if k.endswith("_s") else v for k, v in latency_stats(t).items()},
              "ratio_to_in_process": float(np.median(t) / base)} for name, t in times.items()]
     for r in rows:
         r["median_ms"], r["p90_ms"], r["min_ms"] = r.pop("median_s"), r.pop("p90_s"), r.pop("min_s")
     rows[-1]["server_side_median_ms"] = float(np.median(server_ms))
+    targets = {"throughput_ratio": many["requests_per_s"] / one["requests_per_s"],
+               "p99_over_one_client_p50": many["p99_ms"] / one["p50_ms"]}
+    targets.update(throughput_target=TARGET_THROUGHPUT, p99_target=TARGET_P99,
+                   throughput_met=targets["throughput_ratio"] >= TARGET_THROUGHPUT,
+                   p99_met=targets["p99_over_one_client_p50"] <= TARGET_P99)
     table = markdown_table(["path", "median ms", "p90 ms", "x in-process"],
                            [[r["path"], r["median_ms"], r["p90_ms"], r["ratio_to_in_process"]] for r in rows])
-    table += (f"\n\nload test: {load['clients']} clients x {load['requests_per_client']} requests: "
-              f"{load['requests_per_s']:.1f} requests/s, round trip p50 {load['p50_ms']:.1f} ms, p99 "
-              f"{load['p99_ms']:.1f} ms, {load['failures']} failures")
-    return report_rows(NAME, argv, args, rows, table, load=load, run=os.path.relpath(args.run),
+    table += "\n\n" + markdown_table(["batch", "median ms", "ms per row", "throughput x batch 1"],
+                                     [[s["batch"], s["median_ms"], s["ms_per_row"], s["throughput_x_batch1"]]
+                                      for s in scaling])
+    loads = [("1 client", one), (f"{args.clients} clients, batches of <= {args.max_batch}", many)]
+    if unbatched is not None:
+        loads.append((f"{args.clients} clients, no batching", unbatched))
+    table += "\n\n" + markdown_table(
+        ["load test", "replies", "requests/s", "p50 ms", "p99 ms", "mean batch", "failures"],
+        [[name, r["replies"], r["requests_per_s"], r["p50_ms"], r["p99_ms"], r["mean_batch"], r["failures"]]
+         for name, r in loads])
+    table += (f"\n\n{args.clients} clients / 1 client: {targets['throughput_ratio']:.2f}x requests/s (target >= "
+              f"{TARGET_THROUGHPUT}: {'met' if targets['throughput_met'] else 'NOT met'}); p99 / one client's p50: "
+              f"{targets['p99_over_one_client_p50']:.2f} (target <= {TARGET_P99}: "
+              f"{'met' if targets['p99_met'] else 'NOT met'})")
+    return report_rows(NAME, argv, args, rows, table, cpu_model=cpu_model(), cpu_count=os.cpu_count(),
+                       policy_source=source, batch_scaling=scaling, load_one_client=one, load=many,
+                       load_unbatched=unbatched, targets=targets,
                        policy={k: meta[k] for k in ("task", "strides", "num_samples", "inference", "obs")})
 
 

@@ -54,7 +54,7 @@ class ServerConfig:
     max_batch: int = 8  # observations decided in one backend call
     batch_window_ms: float = 5.0  # how long the first request of a batch waits for more
     seed: int = 0  # default keys: decision n of a connection uses fold_in(key(seed), n)
-    api_key: str = ""  # non-empty: clients must send "Authorization: Api-Key <api_key>"
+    api_key: str = dataclasses.field(default="", repr=False)  # non-empty: "Authorization: Api-Key <api_key>"
 
     def __post_init__(self):
         if not isinstance(self.port, int) or not 0 <= self.port < 2**16:
