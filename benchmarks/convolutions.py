@@ -42,7 +42,9 @@ VARIANTS = ("native", "after")
 CONFIGS = {"DP L_c=8": ((1,), 8), "DP L_c=16": ((1,), 16), "HiPolicy 1/2/3 L_c=8": ((1, 2, 3), 8)}
 
 
-def native_conv1d(x, kernel, padding, stride=1):
+def native_conv1d(x, kernel, padding, stride=1, compute_dtype="float32"):
+    """XLA's native convolution, ``models.unet.conv1d``'s signature (the float32 baseline: ``compute_dtype`` is
+    accepted and not used)."""
     return jax.lax.conv_general_dilated(x, kernel.astype(x.dtype), (stride,), (padding,),
                                         dimension_numbers=("NWC", "WIO", "NWC"))
 
@@ -51,6 +53,7 @@ class NativeUpsample(nn.Module):
     """``Upsample1d``'s parameters through ``lax.conv_transpose`` (what ``nn.ConvTranspose`` runs)."""
 
     features: int
+    compute_dtype: str = "float32"  # ``Upsample1d``'s fields; the native baseline runs in float32
 
     @nn.compact
     def __call__(self, x):
