@@ -35,6 +35,7 @@ from hipolicy_jax.data.normalizer import Normalizer
 from hipolicy_jax.deploy.backend import ExportedBackend, InProcessBackend
 from hipolicy_jax.deploy.client import PolicyClient
 from hipolicy_jax.deploy.export import export_backend
+from hipolicy_jax.deploy.server import ServerConfig
 from hipolicy_jax.models.policy_net import init_policy_params
 from hipolicy_jax.runs.budgets import BUDGETS
 from hipolicy_jax.runs.cli import enable_compilation_cache
@@ -51,9 +52,12 @@ def parse_args(argv=None):
     p.add_argument("--batches", type=int, nargs="+", default=[1, 2, 4, 8], help="batch sizes of the scaling rows")
     p.add_argument("--clients", type=int, default=8, help="concurrent clients of the load test")
     p.add_argument("--requests", type=int, default=40, help="requests per client in the load tests")
-    p.add_argument("--max-batch", type=int, default=8, help="the server's micro-batch limit")
-    p.add_argument("--batch-window-ms", type=float, default=5.0)
-    p.add_argument("--time-limit", type=float, default=240.0, help="seconds per load test at most")
+    p.add_argument("--max-batch", type=int, default=ServerConfig.max_batch, help="the server's micro-batch limit")
+    p.add_argument("--batch-window-ms", type=float, default=ServerConfig.batch_window_ms)
+    p.add_argument("--workers", type=int, nargs="+", default=[ServerConfig.workers, 3 - ServerConfig.workers],
+                   help="concurrent batches of the servers under test; the targets are read on the first")
+    p.add_argument("--rounds", type=int, default=2, help="load-test rounds (one client, then each server), pooled")
+    p.add_argument("--time-limit", type=float, default=120.0, help="seconds per load test at most")
     p.add_argument("--no-unbatched", action="store_true", help="skip the load test against --max-batch 1")
     return p.parse_args(argv)
 
@@ -93,10 +97,11 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(export_dir: str, port: int, max_batch: int, window_ms: float) -> subprocess.Popen:
+def start_server(export_dir: str, port: int, max_batch: int, window_ms: float, workers: int) -> subprocess.Popen:
     repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     proc = subprocess.Popen([sys.executable, "-m", "experiments.serve", "--export", export_dir, "--port", str(port),
-                             "--max-batch", str(max_batch), "--batch-window-ms", str(window_ms)],
+                             "--max-batch", str(max_batch), "--batch-window-ms", str(window_ms),
+                             "--workers", str(workers)],
                             cwd=repo, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env={**os.environ, "HIPOLICY_API_KEY": ""})
     line = proc.stdout.readline()
@@ -108,7 +113,8 @@ def start_server(export_dir: str, port: int, max_batch: int, window_ms: float) -
 
 
 def load_test(url: str, histories: list[dict], clients: int, requests: int, time_limit: float) -> dict:
-    """``clients`` threads, one connection each, ``requests`` requests each (fewer once ``time_limit`` is spent)."""
+    """``clients`` threads, one connection each, ``requests`` requests each (fewer once ``time_limit`` is spent)
+    → raw latencies (s), batch sizes, failures, wall time."""
     latencies, batches, failures = [], [], []
     deadline = time.perf_counter() + time_limit
 
@@ -135,13 +141,21 @@ def load_test(url: str, histories: list[dict], clients: int, requests: int, time
         t.start()
     for t in threads:
         t.join()
-    wall = time.perf_counter() - t0
-    lat = np.asarray(latencies) * 1e3
-    return {"clients": clients, "requests_per_client": requests, "replies": len(latencies),
-            "failures": len(failures), "stopped_by_time_limit": len(latencies) < clients * requests,
-            "wall_s": wall, "requests_per_s": len(latencies) / wall, "p50_ms": float(np.percentile(lat, 50)),
-            "p90_ms": float(np.percentile(lat, 90)), "p99_ms": float(np.percentile(lat, 99)),
-            "max_ms": float(lat.max()), "mean_batch": float(np.mean(batches))}
+    return {"latencies": latencies, "batches": batches, "failures": len(failures), "wall": time.perf_counter() - t0,
+            "planned": clients * requests}
+
+
+def summarize(raws: list[dict], clients: int, requests: int, **about) -> dict:
+    """Pooled statistics of load-test rounds: requests/s = all replies / all wall time."""
+    lat = np.concatenate([r["latencies"] for r in raws]) * 1e3
+    replies, wall = len(lat), sum(r["wall"] for r in raws)
+    return {**about, "clients": clients, "requests_per_client": requests, "rounds": len(raws), "replies": replies,
+            "failures": sum(r["failures"] for r in raws),
+            "stopped_by_time_limit": replies < sum(r["planned"] for r in raws), "wall_s": wall,
+            "requests_per_s": replies / wall, "requests_per_s_by_round": [len(r["latencies"]) / r["wall"] for r in raws],
+            "p50_ms": float(np.percentile(lat, 50)), "p90_ms": float(np.percentile(lat, 90)),
+            "p99_ms": float(np.percentile(lat, 99)), "max_ms": float(lat.max()),
+            "mean_batch": float(np.mean(np.concatenate([r["batches"] for r in raws])))}
 
 
 def main(argv=None) -> dict:
@@ -161,7 +175,7 @@ def main(argv=None) -> dict:
             export_backend(backend, directory)
             exported = ExportedBackend(directory)
             port = _free_port()
-            procs.append(start_server(directory, port, args.max_batch, args.batch_window_ms))
+            procs.append(start_server(directory, port, args.max_batch, args.batch_window_ms, args.workers[0]))
             url = f"ws://127.0.0.1:{port}"
             client = PolicyClient(url)
             batch = {k: v[None] for k, v in obs.items()}
@@ -191,18 +205,43 @@ def main(argv=None) -> dict:
                     exported.decide(rows, keys)
                     t.append(time.perf_counter() - t0)
                 scaling.append({"batch": b, "median_ms": 1e3 * float(np.median(t))})
+            for b in args.batches[:2]:  # two calls at once from two threads (ms per round of two): a 2nd worker?
+                rows = {k: np.stack([histories[i % len(histories)][k] for i in range(b)]) for k in meta["obs"]}
+                keys = np.stack([key(i)[0] for i in range(b)])
+                calls = max(3, args.calls // 2)
+                threads = [threading.Thread(target=lambda: [exported.decide(rows, keys) for _ in range(calls)])
+                           for _ in range(2)]
+                t0 = time.perf_counter()
+                for t in threads:
+                    t.start()
+                for t in threads:
+                    t.join()
+                scaling.append({"batch": b, "threads": 2, "median_ms": 1e3 * (time.perf_counter() - t0) / calls})
             for row in scaling:
-                row["ms_per_row"] = row["median_ms"] / row["batch"]
+                row.setdefault("threads", 1)
+                row["ms_per_row"] = row["median_ms"] / (row["batch"] * row["threads"])
                 row["throughput_x_batch1"] = scaling[0]["ms_per_row"] / row["ms_per_row"]
-            one = load_test(url, histories, 1, args.requests, args.time_limit)
-            many = load_test(url, histories, args.clients, args.requests, args.time_limit)
-            procs.pop().terminate()
-            unbatched = None
+            servers = [(f"{args.clients} clients, batches of <= {args.max_batch}, {args.workers[0]} worker(s)", url,
+                        {"max_batch": args.max_batch, "workers": args.workers[0]}, args.requests)]
+            for w in args.workers[1:]:
+                port = _free_port()
+                procs.append(start_server(directory, port, args.max_batch, args.batch_window_ms, w))
+                servers.append((f"{args.clients} clients, batches of <= {args.max_batch}, {w} worker(s)",
+                                f"ws://127.0.0.1:{port}", {"max_batch": args.max_batch, "workers": w}, args.requests))
             if not args.no_unbatched:
                 port = _free_port()
-                procs.append(start_server(directory, port, 1, 0.0))
-                unbatched = load_test(f"ws://127.0.0.1:{port}", histories, args.clients,
-                                      max(args.requests // 2, 1), args.time_limit)
+                procs.append(start_server(directory, port, 1, 0.0, 1))
+                servers.append((f"{args.clients} clients, no batching", f"ws://127.0.0.1:{port}",
+                                {"max_batch": 1, "workers": 1}, max(args.requests // 2, 1)))
+            raw_one, raw_many = [], {name: [] for name, *_ in servers}
+            for _ in range(args.rounds):  # interleaved, so that drift of the machine hits every row alike
+                raw_one.append(load_test(url, histories, 1, args.requests, args.time_limit))
+                for name, server_url, _, requests in servers:
+                    raw_many[name].append(load_test(server_url, histories, args.clients, requests, args.time_limit))
+            one = summarize(raw_one, 1, args.requests, server={"max_batch": args.max_batch, "workers": args.workers[0]})
+            loads = [("1 client", one)] + [(name, summarize(raw_many[name], args.clients, requests, server=config))
+                                           for name, _, config, requests in servers]
+            many = loads[1][1]
     finally:
         for p in procs:
             p.terminate()
@@ -215,17 +254,18 @@ def main(argv=None) -> dict:
     rows[-1]["server_side_median_ms"] = float(np.median(server_ms))
     targets = {"throughput_ratio": many["requests_per_s"] / one["requests_per_s"],
                "p99_over_one_client_p50": many["p99_ms"] / one["p50_ms"]}
+    # the best the compute allows: the largest throughput gain of one batched call (batch <= max_batch), and by
+    # Little's law the closed-loop clients' mean round trip >= clients / throughput
+    best = max(s["throughput_x_batch1"] for s in scaling if s["threads"] == 1 and s["batch"] <= args.max_batch)
+    targets.update(best_batch_throughput_x=best, mean_latency_bound_x_p50=args.clients / best)
     targets.update(throughput_target=TARGET_THROUGHPUT, p99_target=TARGET_P99,
                    throughput_met=targets["throughput_ratio"] >= TARGET_THROUGHPUT,
                    p99_met=targets["p99_over_one_client_p50"] <= TARGET_P99)
     table = markdown_table(["path", "median ms", "p90 ms", "x in-process"],
                            [[r["path"], r["median_ms"], r["p90_ms"], r["ratio_to_in_process"]] for r in rows])
-    table += "\n\n" + markdown_table(["batch", "median ms", "ms per row", "throughput x batch 1"],
-                                     [[s["batch"], s["median_ms"], s["ms_per_row"], s["throughput_x_batch1"]]
-                                      for s in scaling])
-    loads = [("1 client", one), (f"{args.clients} clients, batches of <= {args.max_batch}", many)]
-    if unbatched is not None:
-        loads.append((f"{args.clients} clients, no batching", unbatched))
+    table += "\n\n" + markdown_table(["batch", "threads", "ms per call", "ms per row", "throughput x batch 1"],
+                                     [[s["batch"], s["threads"], s["median_ms"], s["ms_per_row"],
+                                       s["throughput_x_batch1"]] for s in scaling])
     table += "\n\n" + markdown_table(
         ["load test", "replies", "requests/s", "p50 ms", "p99 ms", "mean batch", "failures"],
         [[name, r["replies"], r["requests_per_s"], r["p50_ms"], r["p99_ms"], r["mean_batch"], r["failures"]]
@@ -233,10 +273,13 @@ def main(argv=None) -> dict:
     table += (f"\n\n{args.clients} clients / 1 client: {targets['throughput_ratio']:.2f}x requests/s (target >= "
               f"{TARGET_THROUGHPUT}: {'met' if targets['throughput_met'] else 'NOT met'}); p99 / one client's p50: "
               f"{targets['p99_over_one_client_p50']:.2f} (target <= {TARGET_P99}: "
-              f"{'met' if targets['p99_met'] else 'NOT met'})")
+              f"{'met' if targets['p99_met'] else 'NOT met'}). The compute bounds both: one call of up to "
+              f"{args.max_batch} rows decides at most {best:.2f}x the rows/s of batch 1, so {args.clients} closed-loop "
+              f"clients wait >= {args.clients}/{best:.2f} = {targets['mean_latency_bound_x_p50']:.2f}x one decision "
+              f"on average")
     return report_rows(NAME, argv, args, rows, table, cpu_model=cpu_model(), cpu_count=os.cpu_count(),
                        policy_source=source, batch_scaling=scaling, load_one_client=one, load=many,
-                       load_unbatched=unbatched, targets=targets,
+                       loads={name: r for name, r in loads[1:]}, targets=targets,
                        policy={k: meta[k] for k in ("task", "strides", "num_samples", "inference", "obs")})
 
 

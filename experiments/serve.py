@@ -35,6 +35,7 @@ class ServeArgs:
     max_message_mb: float = protocol.DEFAULT_MAX_MESSAGE_BYTES / 2**20  # larger requests get an error reply
     max_batch: int = ServerConfig.max_batch  # observations decided in one call
     batch_window_ms: float = ServerConfig.batch_window_ms  # how long a request waits for others to batch with
+    workers: int = ServerConfig.workers  # batches decided at the same time
     seed: int = 0  # keys of clients that send none: decision n of a connection uses fold_in(key(seed), n)
     api_key: str = ""  # required "Authorization: Api-Key <key>"; default: $HIPOLICY_API_KEY, else none
 
@@ -43,7 +44,8 @@ def main(args: ServeArgs) -> None:
     if bool(args.checkpoint) == bool(args.export):
         raise ValueError("checkpoint / export: pass exactly one of --checkpoint RUN_DIR and --export DIR")
     config = ServerConfig(host=args.host, port=args.port, max_message_bytes=int(args.max_message_mb * 2**20),
-                          max_batch=args.max_batch, batch_window_ms=args.batch_window_ms, seed=args.seed,
+                          max_batch=args.max_batch, batch_window_ms=args.batch_window_ms, workers=args.workers,
+                          seed=args.seed,
                           api_key=args.api_key or os.environ.get(API_KEY_ENV, ""))
     backend = ExportedBackend(args.export) if args.export else InProcessBackend.from_run(args.checkpoint,
                                                                                         args.inference, args.step)

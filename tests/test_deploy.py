@@ -154,6 +154,7 @@ def test_server_config_errors_name_the_field():
                             ({"port": 70000}, r"port: expected an int in \[0, 65535\]"),
                             ({"batch_window_ms": -1}, r"batch_window_ms: expected 0 to 1000 ms"),
                             ({"seed": -1}, r"seed: expected an int"),
+                            ({"workers": 0}, r"workers: expected 1 to 16 concurrent batches"),
                             ({"api_key": "two words"}, r"api_key: expected printable ASCII without spaces")]:
         with pytest.raises(ValueError, match=pattern):
             ServerConfig(**kwargs)
@@ -572,6 +573,30 @@ def test_remote_evaluation_matches_in_process(run_dir, exported, server):
     (a, a_rec), (b, b_rec) = results["trained"], results["perturbed"]
     assert np.abs(np.asarray(a_rec.qpos) - np.asarray(b_rec.qpos)).max() > 1e-2
     assert not np.allclose(np.asarray(a.entropy), np.asarray(b.entropy), equal_nan=True)
+
+
+def test_two_workers_decide_two_batches(exported):
+    """With 2 workers, 4 connections sending at once are split into two batches of 2 (each connection's share),
+    decided on two threads; every answer is still its own."""
+    backend, _ = exported
+    srv = PolicyServer(backend, ServerConfig(port=0, max_batch=2, workers=2, batch_window_ms=500),
+                       log=lambda msg: None)
+    srv.start_in_thread()
+    obs, keys = _obs(backend.metadata, 4, seed=6), _keys(4, seed=6)
+    alone = backend.decide(obs, keys)
+    clients = [PolicyClient(_url(srv)) for _ in range(4)]
+    try:
+        for i, c in enumerate(clients):
+            c.send(c.message({k: v[i] for k, v in obs.items()}, keys[i]))
+        replies = [c.receive() for c in clients]
+        assert [r["server_timing"]["batch"] for r in replies] == [2, 2, 2, 2] and srv.batches == 2
+        for i, reply in enumerate(replies):
+            np.testing.assert_allclose(reply["actions"], alone["actions"][i], atol=1e-5)
+        assert clients[0].metadata()["server"]["workers"] == 2
+    finally:
+        for c in clients:
+            c.close()
+        srv.stop()
 
 
 def test_serving_refuses_remote_inpainting(exported):
