@@ -13,3 +13,6 @@ PY=$(find_python312 "jax 0.12 needs >= 3.12") || exit 1
 python --version
 pip install -q --upgrade pip
 pip install -q -e ".[dev]"
+# openpi's client, for the tests that drive the policy server with it: it pins numpy<2, which jax 0.12 cannot use,
+# and its code runs on numpy 2, so it goes in without its dependencies (its other ones are in .[dev])
+pip install -q --no-deps "openpi-client==0.1.2"
