@@ -278,12 +278,12 @@ def test_serving_benchmark(tmp_path):
     """The serving benchmark on a tiny run: three single-call paths and a small load test, all replies received."""
     from benchmarks import serving
     run = _tiny_run(tmp_path, "diffusion")
-    out = serving.main(["--run", run, "--calls", "2", "--clients", "2", "--requests", "5",
+    out = serving.main(["--run", run, "--calls", "2", "--clients", "2", "--requests", "5", "--rounds", "1",
                         "--out-dir", str(tmp_path / "out")])
     assert [r["path"] for r in out["rows"]] == ["in-process (jit)", "exported program", "websocket round trip"]
     for r in out["rows"]:
         _finite(r, ["median_ms", "p90_ms", "ratio_to_in_process"])
-    assert out["load"]["replies"] == 10 and out["load"]["failures"] == 0
+    assert out["load"]["replies"] == 10 and out["load"]["failures"] == 0  # 2 clients × 5 requests, one round
 
 
 def test_pytorch_comparison_shapes():
