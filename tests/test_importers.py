@@ -595,7 +595,7 @@ def _v3_version(root):
     (_v3_drop_episodes_file, r"meta/info\.json: total_episodes is 5, but .*meta/episodes lists 3 episodes "
                              r"\(chunk-000/file-000\.parquet\); expected every episode listed once"),
     (_v3_no_episodes_dir, r"meta/episodes: missing; expected the per-episode metadata "
-                          r"meta/episodes/chunk-XXX/file-XXX\.parquet of a LeRobot v3\.0 dataset"),
+                          r"meta/episodes/chunk-NNN/file-NNN\.parquet of a LeRobot v3\.0 dataset"),
     (_v3_range_past_file, r"meta/episodes/chunk-000/file-001\.parquet: episode 4: "
                           r"dataset_from_index:dataset_to_index 60:74 is rows 12:26 of .*data/chunk-000/"
                           r"file-001\.parquet, which holds 23 rows \(dataset frames 48:71\); expected the episode's "

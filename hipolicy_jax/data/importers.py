@@ -13,8 +13,8 @@ Three sources are supported, each read episode by episode, mapped to the project
 * ``import_lerobot``: a local LeRobot dataset folder, v2.x or v3.0 (``codebase_version`` in ``meta/info.json``,
   with ``fps``, ``features`` and the ``data_path`` / ``video_path`` templates). v2.x: one parquet file per episode
   and, for ``video`` features, one mp4 per episode and camera. v3.0: episodes grouped in
-  ``data/chunk-XXX/file-XXX.parquet`` and ``videos/<key>/chunk-XXX/file-XXX.mp4`` files, each located by its row of
-  ``meta/episodes/chunk-XXX/file-XXX.parquet``. Video frames are decoded and matched by timestamp. Default key map:
+  ``data/chunk-NNN/file-NNN.parquet`` and ``videos/<key>/chunk-NNN/file-NNN.mp4`` files, each located by its row of
+  ``meta/episodes/chunk-NNN/file-NNN.parquet``. Video frames are decoded and matched by timestamp. Default key map:
   ``state=observation.state``, ``action=action`` and the camera feature as ``image`` (several cameras:
   ``image_<name>`` each).
 
@@ -414,7 +414,7 @@ def import_robomimic(src: str | os.PathLike, key_map: KeyMap | None = None,
 
 # ---------------------------------------------------------------------------------------------------- LeRobot
 LEROBOT_VERSIONS = "v2.x (v2.0, v2.1: one parquet file per episode) and v3.0 (episodes grouped in " \
-                   "chunk-XXX/file-XXX parquet and mp4 files)"
+                   "chunk-NNN/file-NNN parquet and mp4 files)"
 
 
 def _lerobot_layout(version: str) -> str | None:
@@ -543,7 +543,7 @@ def _int_column(table, name: str, path: str) -> np.ndarray:
 
 
 def _lerobot_v3_episodes(root: str, info: dict, info_path: str, pq) -> list[_LeRobotEpisode]:
-    """v3.0: episodes listed in ``meta/episodes/chunk-XXX/file-XXX.parquet`` (one row each) with their global frame
+    """v3.0: episodes listed in ``meta/episodes/chunk-NNN/file-NNN.parquet`` (one row each) with their global frame
     range ``dataset_from_index:dataset_to_index`` in the parquet file ``data/chunk_index``, ``data/file_index`` (its
     rows follow those of the earlier files) and, per camera, the mp4 file ``videos/<key>/chunk_index``,
     ``file_index`` and the episode's start ``videos/<key>/from_timestamp`` in it."""
@@ -551,7 +551,7 @@ def _lerobot_v3_episodes(root: str, info: dict, info_path: str, pq) -> list[_LeR
     meta_files = sorted(glob.glob(os.path.join(glob.escape(meta_dir), "*", "*.parquet")))
     if not meta_files:
         raise DataValidationError(f"{meta_dir}: missing; expected the per-episode metadata "
-                                  f"meta/episodes/chunk-XXX/file-XXX.parquet of a LeRobot v3.0 dataset "
+                                  f"meta/episodes/chunk-NNN/file-NNN.parquet of a LeRobot v3.0 dataset "
                                   f"(codebase_version in {info_path})")
     rows: dict[int, dict] = {}
     for path in meta_files:
@@ -768,8 +768,8 @@ def import_lerobot(src: str | os.PathLike, key_map: KeyMap | None = None,
     -> ``(buffer, summary)``.
 
     Layouts: v2.x has one parquet file (and one mp4 per camera) per episode, listed in ``meta/episodes.jsonl``;
-    v3.0 groups episodes in ``data/chunk-XXX/file-XXX.parquet`` and ``videos/<key>/chunk-XXX/file-XXX.mp4`` files,
-    each episode located by its row in ``meta/episodes/chunk-XXX/file-XXX.parquet`` (``dataset_from_index``,
+    v3.0 groups episodes in ``data/chunk-NNN/file-NNN.parquet`` and ``videos/<key>/chunk-NNN/file-NNN.mp4`` files,
+    each episode located by its row in ``meta/episodes/chunk-NNN/file-NNN.parquet`` (``dataset_from_index``,
     ``dataset_to_index``, ``data/chunk_index``, ``data/file_index``, ``videos/<key>/from_timestamp`` ...). Any other
     version is refused, naming the supported ones.
 

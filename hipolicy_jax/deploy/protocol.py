@@ -34,7 +34,6 @@ str}``; only numeric arrays (bool, int, uint, float) are accepted.
 
 from __future__ import annotations
 
-import functools
 from typing import Any, NamedTuple
 
 import msgpack
@@ -194,17 +193,12 @@ def seed_key_data(seed: int) -> np.ndarray:
     return np.array([0, seed], np.uint32)
 
 
-@functools.cache
-def _fold_in():
-    import jax
-
-    return jax.jit(lambda seed, n: jax.random.key_data(jax.random.fold_in(jax.random.key(seed), n)))
-
-
 def decision_key(seed: int, n: int) -> np.ndarray:
     """Raw data (2,) uint32 of the key of a connection's n-th decision when the client sends none:
     ``jax.random.key_data(jax.random.fold_in(jax.random.key(seed), n))``."""
-    return np.asarray(_fold_in()(np.uint32(seed), np.uint32(n)))
+    import jax
+
+    return np.asarray(jax.random.key_data(jax.random.fold_in(jax.random.key(np.uint32(seed)), np.uint32(n))))
 
 
 __all__ = ["DEFAULT_MAX_MESSAGE_BYTES", "PROTOCOL", "RESERVED", "ProtocolError", "Request", "decision_key",
