@@ -45,7 +45,8 @@ OUTPUT_KEYS = ("actions", "stride", "freq_index", "entropy", "chunks")
 
 def obs_spec(task: str, cfg) -> dict[str, dict]:
     """{key: {"shape": [obs_span, ...], "dtype": ...}} of the history the policy of ``cfg`` reads on ``task``."""
-    env = envs_lib.make_for_encoder(task, cfg.encoder)
+    env = (envs_lib.external.make(task, cfg.encoder) if envs_lib.external.is_external(task)
+           else envs_lib.make_for_encoder(task, cfg.encoder))
     return {k: {"shape": [cfg.chunk.obs_span, *env.obs_shapes[k]], "dtype": env.obs_dtypes[k]}
             for k in cfg.encoder.obs_keys}
 

@@ -71,6 +71,11 @@ class ExternalTask:
     def action_dim(self) -> int:
         return self.suite.action_dim
 
+    @property
+    def obs_dtypes(self) -> dict[str, str]:
+        """Per-key dtype of the observations a bridge sends (all float32)."""
+        return {k: "float32" for k in self.obs_shapes}
+
 
 def make(name: str, encoder: EncoderConfig = EncoderConfig()) -> ExternalTask:
     """The external task ``name`` as seen by a policy with ``encoder`` (its state and, for point-cloud encoders,
