@@ -6,6 +6,7 @@ chooses another); without it the tests that run the bridge are skipped.
 """
 
 import dataclasses
+import json
 import os
 import subprocess
 import sys
@@ -47,7 +48,7 @@ def demos(tmp_path_factory):
 
 @needs_venv
 def test_bridge_imports_no_jax():
-    code = ("import sys, metaworld_bridge.collect, metaworld_bridge.check_experts; "
+    code = ("import sys, metaworld_bridge.collect, metaworld_bridge.check_experts, metaworld_bridge.evaluate; "
             "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('jax', 'jaxlib', 'flax', 'hipolicy_jax')); "
             "assert not bad, bad")
     r = subprocess.run([PYTHON, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
@@ -90,18 +91,27 @@ def test_collect_writes_the_project_layout(demos):
     np.testing.assert_array_equal(buf.episode_ends, other.episode_ends)
 
 
-@needs_venv
-def test_train_pointcloud_policy_on_metaworld_demos(demos, tmp_path):
+def _pointcloud_config(path: str, out: str) -> RunConfig:
+    return RunConfig(task=f"metaworld:{TASK}", data=path, out=out, val_ratio=0.5,
+                     policy=PolicyConfig(model=ModelConfig(size="tiny", fusion_heads=2),
+                                         encoder=EncoderConfig(obs_type="pointcloud", num_points=POINTS)),
+                     train=TrainConfig(batch_size=16, num_steps=12, warmup_steps=2, log_every=6, ckpt_every=12),
+                     inference=InferenceConfig(num_samples=4, num_steps=2, calib_windows=8),
+                     eval=dataclasses.replace(RunConfig().eval, every=0), final_eval=False, progress=False)
+
+
+@pytest.fixture(scope="module")
+def pointcloud_run(demos, tmp_path_factory):
+    """A tiny point-cloud HiPolicy trained for 12 steps on the two demos: (run dir, config, summary)."""
     (path, _), _ = demos
-    cfg = RunConfig(task=f"metaworld:{TASK}", data=path, out=str(tmp_path / "run"), val_ratio=0.5,
-                    policy=PolicyConfig(model=ModelConfig(size="tiny", fusion_heads=2),
-                                        encoder=EncoderConfig(obs_type="pointcloud", num_points=POINTS)),
-                    train=TrainConfig(batch_size=16, num_steps=12, warmup_steps=2, log_every=6, ckpt_every=12),
-                    inference=InferenceConfig(num_samples=4, num_steps=2, calib_windows=8),
-                    eval=dataclasses.replace(RunConfig().eval, every=0), final_eval=False, progress=False)
+    cfg = _pointcloud_config(path, str(tmp_path_factory.mktemp("pc") / "run"))
+    return cfg.out_dir(), cfg, main(cfg)
+
+
+@needs_venv
+def test_train_pointcloud_policy_on_metaworld_demos(pointcloud_run):
+    run_dir, cfg, summary = pointcloud_run
     assert cfg.policy.encoder.state_dims == 4  # proprioception: hand xyz + gripper
-    assert cfg.out_dir() == str(tmp_path / "run")
-    summary = main(cfg)
     assert summary["steps"] == 12 and summary["eval"] is None and np.isfinite(summary["final_loss"])
     assert summary["task"] == "metaworld:assembly" and summary["demos"]["episodes"] == EPISODES
     th = summary["thresholds"]  # calibrated on the held-out demos without an env
@@ -110,6 +120,66 @@ def test_train_pointcloud_policy_on_metaworld_demos(demos, tmp_path):
     info = main(dataclasses.replace(cfg, policy=PolicyConfig(model=ModelConfig(size="tiny", fusion_heads=2)),
                                     dry_run=True))
     assert info["batch"]["obs.state"][-1] == 39 and info["batch"]["action"][-1] == 4
+
+
+@pytest.fixture(scope="module")
+def served(pointcloud_run):
+    """The trained point-cloud policy behind the project's server on a free port: (url, server)."""
+    from hipolicy_jax.deploy.backend import InProcessBackend
+    from hipolicy_jax.deploy.server import PolicyServer, ServerConfig
+
+    srv = PolicyServer(InProcessBackend.from_run(pointcloud_run[0]), ServerConfig(port=0, max_batch=2),
+                       log=lambda msg: None)
+    srv.start_in_thread()
+    yield f"ws://127.0.0.1:{srv.port}", srv
+    srv.stop()
+
+
+def evaluate_remote(url: str, tmp_path, *args: str) -> tuple[subprocess.CompletedProcess, dict | None]:
+    out = tmp_path / f"eval{len(list(tmp_path.iterdir()))}.json"
+    r = bridge("metaworld_bridge.evaluate", "--task", TASK, "--url", url, "--camera-size", "32", "--max-steps",
+               str(MAX_STEPS), "--no-progress", "--out", str(out), *args, timeout=300)
+    return r, (json.loads(out.read_text()) if r.returncode == 0 else None)
+
+
+MAX_STEPS = 24
+
+
+@needs_venv
+def test_metaworld_episodes_through_the_policy_server(served, tmp_path):
+    """The env side (Meta-World venv, openpi's client) runs episodes against the served policy: every episode is a
+    function of (policy, initial-state seed) alone, the same whether 2 envs are batched together or run one by one
+    (up to the float rounding of a batched call: entropies agree to 1e-5)."""
+    url, srv = served
+    r, rec = evaluate_remote(url, tmp_path, "--episodes", "2", "--envs", "2", "--first-seed", "500")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert f"{TASK}: " in r.stdout and "success" in r.stdout
+    assert rec["episodes"] == 2 and rec["seeds"] == [500, 501] and rec["envs"] == 2
+    assert rec["policy"]["task"] == f"metaworld:{TASK}" and rec["policy"]["strides"] == srv.metadata["strides"]
+    for ep in rec["per_episode"]:
+        assert 1 <= ep["steps"] <= MAX_STEPS and ep["decisions"] >= 1
+        assert ep["success"] or ep["steps"] == MAX_STEPS  # an episode ends at success or the step limit
+        assert sum(ep["strides"].values()) == ep["decisions"]
+        assert set(map(int, ep["strides"])) <= set(rec["policy"]["strides"])
+    assert rec["openpi_client"] == "0.1.2" and rec["seconds"]["camera"] > 0
+    # one env at a time, on the same seeds: the same episodes, decision for decision
+    r1, one = evaluate_remote(url, tmp_path, "--episodes", "2", "--envs", "1", "--first-seed", "500")
+    assert r1.returncode == 0, r1.stderr[-3000:]
+    drop = lambda eps: [{k: v for k, v in ep.items() if k != "mean_entropy"} for ep in eps]  # noqa: E731
+    assert drop(one["per_episode"]) == drop(rec["per_episode"])
+    np.testing.assert_allclose([ep["mean_entropy"] for ep in one["per_episode"]],
+                               [ep["mean_entropy"] for ep in rec["per_episode"]], rtol=1e-5)
+
+
+@needs_venv
+def test_metaworld_evaluation_errors_name_the_fix(served, tmp_path):
+    url, _ = served
+    r = bridge("metaworld_bridge.evaluate", "--task", "push", "--url", url, "--episodes", "1", "--no-progress")
+    assert r.returncode != 0 and "trained on 'metaworld:assembly', not 'metaworld:push'" in r.stderr
+    r = bridge("metaworld_bridge.evaluate", "--task", TASK, "--url", "ws://127.0.0.1:9", "--episodes", "1",
+               "--no-progress")
+    assert r.returncode != 0 and "no policy server answers at ws://127.0.0.1:9" in r.stderr
+    assert "python -m experiments.serve --checkpoint" in r.stderr
 
 
 @needs_venv
