@@ -3,7 +3,7 @@
     python -m metaworld_bridge.check_experts --seeds 50          # → results/metaworld/experts.json
 
 Every task runs its expert from the initial states of seeds 0..N-1 (``env.MetaWorldTask.reset``: the seeds the
-demos are collected from) until the first success or the 500-step limit, without a camera. The JSON holds, per
+demos are collected from) until the first success or the step limit (``--max-steps``, default 500), without a camera. The JSON holds, per
 task, successes out of N, the mean (min, max) steps of the successful episodes and the failed seeds, plus the
 group totals and the versions it ran with.
 """
@@ -25,9 +25,9 @@ from metaworld_bridge.tasks import DP3_GROUPS
 DEFAULT_OUT = os.path.join("results", "metaworld", "experts.json")
 
 
-def check_task(task: str, seeds: int, first_seed: int = 0) -> dict:
+def check_task(task: str, seeds: int, first_seed: int = 0, max_steps: int = MAX_STEPS) -> dict:
     """Expert success of ``task`` over ``seeds`` initial states from ``first_seed``."""
-    env = MetaWorldTask(task)
+    env = MetaWorldTask(task, max_steps=max_steps)
     steps, failed = [], []
     for s in range(first_seed, first_seed + seeds):
         ep = env.run_expert(s)
@@ -45,6 +45,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--groups", nargs="+", default=list(DP3_GROUPS), choices=list(DP3_GROUPS))
     parser.add_argument("--tasks", nargs="+", default=None, help="these tasks instead of --groups")
+    parser.add_argument("--max-steps", type=int, default=MAX_STEPS,
+                        help="step limit of an episode (Meta-World: 500; DP3 evaluates with 200)")
     parser.add_argument("--out", default=DEFAULT_OUT)
     args = parser.parse_args(argv)
     if args.seeds < 1:
@@ -56,7 +58,7 @@ def main(argv: list[str] | None = None) -> dict:
         for group, names in groups.items():
             for name in names:
                 t = time.perf_counter()
-                tasks[name] = {"group": group, **check_task(name, args.seeds, args.first_seed)}
+                tasks[name] = {"group": group, **check_task(name, args.seeds, args.first_seed, args.max_steps)}
                 r = tasks[name]
                 mean = "-" if r["mean_steps"] is None else f"{r['mean_steps']:.1f}"
                 print(f"{group:>9} {name:<18} {r['successes']:>3}/{args.seeds}  mean steps {mean:>6}  "
@@ -69,7 +71,7 @@ def main(argv: list[str] | None = None) -> dict:
     report = {
         "what": "Meta-World v3 scripted experts (metaworld.policies.ENV_POLICY_MAP), goal-observable envs, one "
                 "episode per seed until the first success (info['success']) or the step limit",
-        "seeds": list(range(args.first_seed, args.first_seed + args.seeds)), "max_steps": MAX_STEPS,
+        "seeds": list(range(args.first_seed, args.first_seed + args.seeds)), "max_steps": args.max_steps,
         "metaworld": importlib.metadata.version("metaworld"), "mujoco": importlib.metadata.version("mujoco"),
         "python": sys.version.split()[0], "seconds": round(time.perf_counter() - t0, 1),
         "groups": totals, "tasks": tasks,
