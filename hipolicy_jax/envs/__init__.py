@@ -55,7 +55,10 @@ def make(task_name: str, **overrides) -> MjxEnv:
 
 
 def episode_limit(task_name: str) -> int:
-    """The task's default episode step limit (``max_steps``)."""
+    """The task's default episode step limit (``max_steps``; an external task's: its suite's campaign limit)."""
+    if external.is_external(task_name):
+        external.check_name(task_name)
+        return external.SUITES[task_name.partition(":")[0]].eval_max_steps
     if task_name not in _REGISTRY:
         raise ValueError(f"task_name: must be one of {TASKS}, got {task_name!r}")
     return _REGISTRY[task_name].default_max_steps

@@ -26,6 +26,9 @@ class ExternalSuite:
     proprio_dim: int  # leading state features that are the agent's proprioception (what vision policies read)
     setup: str  # how to make its venv
     collect: str  # its demo-collection command, formatted with task, episodes, path
+    evaluate: str  # its closed-loop evaluation against a policy server: task, url, episodes, first_seed, envs,
+    # max_steps, out (a JSON record of every episode)
+    eval_max_steps: int  # the campaigns' episode step limit
 
 
 SUITES: dict[str, ExternalSuite] = {
@@ -35,7 +38,11 @@ SUITES: dict[str, ExternalSuite] = {
     "metaworld": ExternalSuite("metaworld", action_dim=4, state_dim=39, proprio_dim=4,
                                setup="bash scripts/setup_metaworld.sh",
                                collect=".venv-metaworld/bin/python -m metaworld_bridge.collect --task {task} "
-                                       "--episodes {episodes} --out {path}"),
+                                       "--episodes {episodes} --out {path}",
+                               evaluate=".venv-metaworld/bin/python -m metaworld_bridge.evaluate --task {task} "
+                                        "--url {url} --episodes {episodes} --first-seed {first_seed} --envs {envs} "
+                                        "--max-steps {max_steps} --out {out}",
+                               eval_max_steps=200),  # DP3's episode length (results/metaworld/PROTOCOL.md)
 }
 
 _TASK_RE = re.compile(r"^[a-z0-9][a-z0-9_-]*$")

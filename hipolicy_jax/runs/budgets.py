@@ -11,6 +11,7 @@ import os
 from typing import Any, NamedTuple
 
 from hipolicy_jax.config import EvalConfig, InferenceConfig, ModelConfig, PolicyConfig, TrainConfig, replace
+from hipolicy_jax.envs import external
 from hipolicy_jax.envs.base import PROPRIO_DIM
 from hipolicy_jax.envs.demos import default_data_path
 from hipolicy_jax.runs.train import CPU_POLICY, CPU_TRAIN, RunConfig
@@ -26,6 +27,8 @@ class Budget(NamedTuple):
     demos: int
     val_ratio: float
     note: str
+    checkpoints: int = 0  # > 0: that many evenly spaced checkpoints kept per run (num_steps / checkpoints apart)
+    periodic_episodes: int = 0  # > 0: every kept checkpoint evaluated on that many episodes (DP3's metric)
 
 
 BUDGETS: dict[str, Budget] = {
@@ -49,7 +52,24 @@ BUDGETS: dict[str, Budget] = {
         inference=InferenceConfig(num_samples=100, sampler="ddpm", calib_windows=256),
         demos=100, val_ratio=0.1,
         note="paper-size model, 20000 steps x batch 128 on 100 demos; 100 episodes, N=100, DDPM 100 steps"),
+    # Meta-World (results/metaworld/PROTOCOL.md): the cpu budget's network and optimiser on 11 expert demos (one
+    # held out per run), 100 episodes through the policy server; the training length is the pilot's T
+    # (METAWORLD_STEPS), 10 checkpoints kept, each evaluated on 20 episodes for DP3's metric
+    "metaworld": Budget(
+        policy=CPU_POLICY,
+        train=dataclasses.replace(CPU_TRAIN, num_steps=8000),
+        eval=EvalConfig(episodes=100, every=0),
+        inference=InferenceConfig(num_samples=16, sampler="auto", num_steps=10, calib_windows=128),
+        demos=11, val_ratio=0.1, checkpoints=10, periodic_episodes=20,
+        note="CPU model, the pilot's T steps x batch 64 on 10 demos (+1 held out); 100 episodes through the policy "
+             "server, N=16, DDIM 10; 10 checkpoints x 20 episodes for DP3's metric"),
 }
+# The Meta-World training length T, fixed by the DP pilot (results/metaworld/PROTOCOL.md "Pilot entries"); None until
+# the pilot has chosen it (the campaign refuses to start the table's runs before).
+METAWORLD_STEPS: int | None = None
+# The Meta-World pilot: DP, seed 0, 8000 steps with checkpoints at 1000 / 2000 / 4000 / 8000 evaluated.
+METAWORLD_PILOT = {"train.num_steps": 8000, "train.ckpt_every": 1000}
+METAWORLD_PILOT_STEPS = (1000, 2000, 4000, 8000)
 
 # Config changes per observation type. Vision policies read proprioception only from the state (objects are seen
 # through the camera), as DP / DP3; DP3 predicts the clean sample and farthest-point samples its points, as its
@@ -63,7 +83,9 @@ OBS_CHANGES: dict[str, dict[str, Any]] = {
 # Changes of an observation type on one budget. On the cpu budget DP3 sees 256 farthest-point-sampled points, the
 # largest count whose DP3+HiPolicy run trains in <= 30 min on 2 cores (results/PROTOCOL.md: a train step at batch 64
 # takes 1.38 s with 512 points, 1.00 s with 384, 0.71 s with 256; results/dp3_point_count_train_step.json).
-BUDGET_OBS_CHANGES: dict[tuple[str, str], dict[str, Any]] = {("cpu", "pointcloud"): {"encoder.num_points": 256}}
+# On Meta-World DP3 sees 512 points, as DP3 (results/metaworld/PROTOCOL.md).
+BUDGET_OBS_CHANGES: dict[tuple[str, str], dict[str, Any]] = {("cpu", "pointcloud"): {"encoder.num_points": 256},
+                                                             ("metaworld", "pointcloud"): {"encoder.num_points": 512}}
 
 DP = (("chunk.strides", (1,)),)  # single frequency: Diffusion Policy
 
@@ -133,8 +155,9 @@ def run_changes_name(run_changes: dict[str, Any] | None) -> str:
 
 def run_dir(runs: str, budget: str, task: str, obs_type: str, changes, seed: int,
             run_changes: dict[str, Any] | None = None) -> str:
-    """``<runs>/<budget>/<task>/<obs>/<variant><run changes>/seed<k>``."""
-    return os.path.join(runs, budget, task, obs_type, variant_name(changes) + run_changes_name(run_changes),
+    """``<runs>/<budget>/<task>/<obs>/<variant><run changes>/seed<k>`` (an external task's ``suite:task`` as
+    ``suite_task``)."""
+    return os.path.join(runs, budget, task.replace(":", "_"), obs_type, variant_name(changes) + run_changes_name(run_changes),
                         f"seed{seed}")
 
 
@@ -151,7 +174,15 @@ def run_config(budget: str, task: str, obs_type: str, changes, seed: int, *, run
                                   **dict(changes)})
     demos = int(run_changes.get("episodes", b.demos))
     train = replace(b.train, seed=seed, **{k[6:]: v for k, v in run_changes.items() if k.startswith("train.")})
-    data_path = os.path.join(data, os.path.basename(default_data_path(task, policy.encoder, demos)))
+    if b.checkpoints and "train.ckpt_every" not in run_changes:
+        train = replace(train, ckpt_every=max(train.num_steps // b.checkpoints, 1), ckpt_keep=b.checkpoints)
+    elif "train.ckpt_every" in run_changes:  # every checkpoint kept (a pilot reads them)
+        train = replace(train, ckpt_keep=max(-(-train.num_steps // train.ckpt_every), train.ckpt_keep))
+    if external.is_external(task):
+        # one buffer (state and point clouds) serves every column: external.default_data_path
+        data_path = os.path.join(data, os.path.basename(external.default_data_path(task, demos)))
+    else:
+        data_path = os.path.join(data, os.path.basename(default_data_path(task, policy.encoder, demos)))
     episodes = b.eval.episodes if eval_episodes is None else eval_episodes
     return RunConfig(task=task, out=run_dir(runs, budget, task, obs_type, changes, seed, run_changes), data=data_path,
                      episodes=demos, val_ratio=b.val_ratio, policy=policy, train=train,

@@ -37,6 +37,48 @@ from hipolicy_jax.runs.store import Run, eval_key, make_evaluator, read_json, wr
 from hipolicy_jax.runs.train import RunConfig, cpu_cores, ensure_trained, finished, prepare_out_dir
 
 RECORD_VERSION = rec_lib.RECORD_VERSION
+# External tasks (results/metaworld/PROTOCOL.md): training seed k's main episodes start from initial-state seeds
+# EXTERNAL_EVAL_SEED + 1000 k + i, its periodic (DP3-metric) episodes from EXTERNAL_PERIODIC_SEED + 1000 k + i.
+EXTERNAL_EVAL_SEED = 1_000_000
+EXTERNAL_PERIODIC_SEED = 2_000_000
+DP3_METRIC_BEST = 5  # DP3's metric: the mean of the 5 best periodic evaluations
+
+
+class Periodic(NamedTuple):
+    """Evaluations of a run's kept checkpoints (an external task's): ``episodes`` each from initial-state seeds
+    ``seed_base + 1000 k + i``; ``steps``: only these checkpoints (None: every kept one)."""
+
+    episodes: int
+    seed_base: int
+    steps: tuple[int, ...] | None = None
+
+
+def external_summary(record: dict) -> dict:
+    """``eval_summary``'s scalars from a bridge's evaluation record (``runs.external.evaluate_run``)."""
+    eps = record["per_episode"]
+    success = np.asarray([e["success"] for e in eps], bool)
+    steps = np.asarray([e["steps"] for e in eps], float)
+    decisions = np.asarray([e["decisions"] for e in eps], float)
+    counts: dict[int, int] = {}
+    for e in eps:
+        for stride, n in e["strides"].items():
+            counts[int(stride)] = counts.get(int(stride), 0) + int(n)
+    out = {"success_rate": float(success.mean()),
+           "mean_steps_success": float(steps[success].mean()) if success.any() else float("nan"),
+           "mean_steps": float(steps.mean()), "mean_decisions": float(decisions.mean()),
+           "mean_actions_per_decision": float(steps.sum() / max(decisions.sum(), 1))}
+    total = sum(counts.values())
+    for stride in sorted(counts):
+        out[f"stride{stride}_frac"] = counts[stride] / total
+    ent = [e["mean_entropy"] for e in eps if e.get("mean_entropy") is not None]
+    if ent:
+        out["mean_entropy"] = float(np.mean(ent))
+    return out
+
+
+def dp3_metric(rates: list[float], best: int = DP3_METRIC_BEST) -> float | None:
+    """DP3's per-seed number: the mean of the ``best`` highest periodic success rates (of all when fewer)."""
+    return float(np.mean(sorted(rates, reverse=True)[:best])) if rates else None
 
 
 class Column(NamedTuple):
@@ -131,10 +173,13 @@ class Campaign:
         inference = dataclasses.replace(self.inference, execution=col.execution)
         return inference, evaluation_key(inference, col, self.episodes, seed)
 
-    def evaluate(self, task: str, col: Column, seed: int, run_changes: dict | None = None) -> dict | None:
+    def evaluate(self, task: str, col: Column, seed: int, run_changes: dict | None = None,
+                 periodic: Periodic | None = None) -> dict | None:
         """The column's evaluation of the (task, seed) run: ``eval_summary`` plus per-episode ``success`` /
         ``steps`` / ``decisions`` and the ``thresholds``; from the record, else trained / evaluated and recorded.
-        None when ``from_records`` and the record lacks it."""
+        None when ``from_records`` and the record lacks it. An external task (``metaworld:<task>``) is evaluated
+        through the policy server and its bridge, with ``periodic`` evaluations of the kept checkpoints (default:
+        the budget's, ``periodic_episodes`` each) and DP3's metric over them."""
         cfg = self.run_config(task, col, seed, run_changes)
         path = record_path(self.records, self.runs, cfg)
         inference, key = self._key(col, seed)
@@ -147,6 +192,8 @@ class Campaign:
             record = read_record(path)  # that shard may have just recorded it
             if key in record.get("evaluations", {}):
                 return record["evaluations"][key]
+            if cfg.external and not os.path.exists(cfg.data_path()):
+                self._collect_external(cfg, seed)
             run = ensure_trained(cfg)
             summary = run_summary(run)
             net = rec_lib.network(run.policy.params, summary["training"].get("final_loss"))
@@ -155,24 +202,27 @@ class Campaign:
                       f"record's {len(record.get('evaluations', {}))} evaluations move to 'superseded' and are "
                       f"made again on the new network", flush=True)
             record = rec_lib.supersede(record, net) if record else record
-            ev = self._evaluator(run, inference)
-            thresholds = self._thresholds(run, col, ev)
-            thresholds_json = (None if thresholds is None
-                               else jsonio.loads(jsonio.dumps([float(t) for t in thresholds])))
-            same = _same_evaluation(record.get("evaluations", {}), json.loads(key), thresholds_json)
-            if same is not None:  # the same inputs were evaluated under another column's settings (percentiles)
-                evaluation = {**record["evaluations"][same], "settings": json.loads(key),
-                              "same_as": json.loads(same), "eval_s": 0.0}
+            if cfg.external:
+                evaluation = self._external_evaluation(run, col, seed, inference, key, periodic)
             else:
-                t0 = time.perf_counter()
-                result = ev.evaluate(run.policy.params, run.policy.normalizer, self.episodes, eval_key(seed),
-                                     thresholds, entropy_guided=col.guided)
-                valid = np.asarray(result.valid)
-                evaluation = {"settings": json.loads(key), **eval_summary(result), "thresholds": thresholds_json,
-                              "success": [bool(x) for x in np.asarray(result.success)],
-                              "steps": [int(x) for x in np.asarray(result.steps)],
-                              "decisions": [int(x) for x in valid.sum(axis=1)], "eval_s": time.perf_counter() - t0,
-                              "cpu_cores": cpu_cores()}
+                ev = self._evaluator(run, inference)
+                thresholds = self._thresholds(run, col, ev)
+                thresholds_json = (None if thresholds is None
+                                   else jsonio.loads(jsonio.dumps([float(t) for t in thresholds])))
+                same = _same_evaluation(record.get("evaluations", {}), json.loads(key), thresholds_json)
+                if same is not None:  # the same inputs were evaluated under another column's settings (percentiles)
+                    evaluation = {**record["evaluations"][same], "settings": json.loads(key),
+                                  "same_as": json.loads(same), "eval_s": 0.0}
+                else:
+                    t0 = time.perf_counter()
+                    result = ev.evaluate(run.policy.params, run.policy.normalizer, self.episodes, eval_key(seed),
+                                         thresholds, entropy_guided=col.guided)
+                    valid = np.asarray(result.valid)
+                    evaluation = {"settings": json.loads(key), **eval_summary(result), "thresholds": thresholds_json,
+                                  "success": [bool(x) for x in np.asarray(result.success)],
+                                  "steps": [int(x) for x in np.asarray(result.steps)],
+                                  "decisions": [int(x) for x in valid.sum(axis=1)], "eval_s": time.perf_counter() - t0,
+                                  "cpu_cores": cpu_cores()}
             evaluation["network"] = net
             evaluation = jsonio.loads(jsonio.dumps(evaluation))  # as records hold it (NaN: None), fresh or reread
             record = {"version": RECORD_VERSION, "budget": self.budget, "run_dir": os.path.relpath(run.run_dir),
@@ -181,6 +231,68 @@ class Campaign:
                       **({"superseded": record["superseded"]} if record.get("superseded") else {})}
             write_json(path, record)
             return evaluation
+
+    def _collect_external(self, cfg: RunConfig, seed: int) -> None:
+        """An external task's demo buffer, with point clouds of the budget's point count (one buffer serves every
+        column), episodes cut at the suite's campaign step limit."""
+        from hipolicy_jax.runs.external import collect_demos
+
+        points = self.run_config(cfg.task, Column("pc", "pointcloud"), seed).policy.encoder.num_points
+        suite = envs.external.SUITES[cfg.task.partition(":")[0]]
+        os.makedirs(os.path.dirname(os.path.abspath(cfg.data_path())), exist_ok=True)
+        collect_demos(cfg.task, cfg.episodes, cfg.data_path(), num_points=points, max_steps=suite.eval_max_steps)
+
+    def _external_evaluation(self, run: Run, col: Column, seed: int, inference: InferenceConfig, key: str,
+                             periodic: Periodic | None) -> dict:
+        """An external task's evaluation: the final network on the budget's episodes, then the periodic ones."""
+        from hipolicy_jax.runs.external import evaluate_run
+
+        if col.execution != "chunk" or col.percentiles is not None or not col.guided:
+            raise ValueError(f"column {col.label}: external tasks are evaluated with whole-chunk execution at the "
+                             f"run's calibrated thresholds only")
+        m = run.policy.cfg.chunk.num_freqs
+        thresholds = (None if m == 1 else calibration.resolve_thresholds(
+            self.inference, m, calibration.read_calibration(run.run_dir))[0])
+        max_steps = envs.episode_limit(run.task)
+        t0 = time.perf_counter()
+        first = EXTERNAL_EVAL_SEED + 1000 * seed
+        rec = evaluate_run(run.run_dir, episodes=self.episodes, first_seed=first, max_steps=max_steps,
+                           inference=inference)
+        evaluation = {"settings": json.loads(key), **external_summary(rec),
+                      "thresholds": None if thresholds is None else [float(t) for t in thresholds],
+                      "success": [bool(e["success"]) for e in rec["per_episode"]],
+                      "steps": [int(e["steps"]) for e in rec["per_episode"]],
+                      "decisions": [int(e["decisions"]) for e in rec["per_episode"]],
+                      "first_seed": first, "max_steps": max_steps, "eval_s": time.perf_counter() - t0,
+                      "cpu_cores": cpu_cores(), "timing": rec["seconds"]}
+        b = BUDGETS[self.budget]
+        periodic = periodic or (Periodic(b.periodic_episodes, EXTERNAL_PERIODIC_SEED) if b.periodic_episodes
+                                else None)
+        if periodic is not None:
+            rows = []
+            for step in checkpoint_steps(run.run_dir):
+                if periodic.steps is not None and step not in periodic.steps:
+                    continue
+                t0 = time.perf_counter()
+                first = periodic.seed_base + 1000 * seed
+                r = evaluate_run(run.run_dir, episodes=periodic.episodes, first_seed=first, max_steps=max_steps,
+                                 inference=inference, step=step)
+                rows.append({"step": step, "params_sha256": r["params_sha256"], "first_seed": first,
+                             "success_rate": r["success_rate"],
+                             "success": [bool(e["success"]) for e in r["per_episode"]],
+                             "steps": [int(e["steps"]) for e in r["per_episode"]],
+                             "eval_s": time.perf_counter() - t0, "cpu_cores": cpu_cores()})
+            evaluation["periodic"] = {"episodes": periodic.episodes, "seed_base": periodic.seed_base,
+                                      "note": "other networks of this run (its kept checkpoints, at the final "
+                                              "network's thresholds): DP3's metric only", "checkpoints": rows}
+            evaluation["dp3_metric"] = dp3_metric([r["success_rate"] for r in rows])
+        return evaluation
+
+
+def checkpoint_steps(run_dir: str) -> list[int]:
+    """The steps of a run dir's kept checkpoints, ascending."""
+    ckpt = os.path.join(run_dir, "checkpoints")
+    return sorted(int(d) for d in os.listdir(ckpt) if d.isdigit()) if os.path.isdir(ckpt) else []
 
 
 def read_record(path: str) -> dict:
@@ -440,5 +552,6 @@ def choose_low_regime(tried: list[tuple[dict, float]], low: float = 0.15, high: 
     return min(tried, key=lambda cs: abs(cs[1] - (low + high) / 2))[0], False
 
 
-__all__ = ["README_BEGIN", "README_END", "Campaign", "Column", "choose_low_regime", "evaluation_key",
+__all__ = ["EXTERNAL_EVAL_SEED", "EXTERNAL_PERIODIC_SEED", "Periodic", "checkpoint_steps", "dp3_metric",
+           "external_summary", "README_BEGIN", "README_END", "Campaign", "Column", "choose_low_regime", "evaluation_key",
            "pilot_candidates", "readme_section", "record_path", "run_summary", "update_readme"]

@@ -21,8 +21,10 @@ from tqdm.auto import tqdm
 from hipolicy_jax.config import PolicyConfig
 from hipolicy_jax.envs import TASK_PRECISE
 from hipolicy_jax.evaluation import stats
-from hipolicy_jax.runs.budgets import BUDGETS, DP, REGIMES, regime_changes, run_config
-from hipolicy_jax.runs.campaign import (README_BEGIN, README_END, Campaign, Column, CostModel, Deadline, Job,
+from hipolicy_jax.runs.budgets import (BUDGETS, DP, METAWORLD_PILOT, METAWORLD_PILOT_STEPS, REGIMES,
+                                       regime_changes, run_config)
+from hipolicy_jax.runs.campaign import (EXTERNAL_EVAL_SEED, README_BEGIN, README_END, Campaign, Column, CostModel,
+                                        Deadline, Job, Periodic,
                                         choose_low_regime, parse_until, pilot_candidates, readme_section, schedule,
                                         shard, update_readme)
 from hipolicy_jax.runs.lock import RunLockedError
@@ -34,7 +36,7 @@ from hipolicy_jax.runs.train import RunConfig, cpu_cores
 
 TaskName = Literal["press_button", "latch_door", "stack_cubes", "pick_place"]
 ObsName = Literal["state", "image", "pointcloud"]
-TABLES = ("main", "ablation", "execution", "thresholds", "hparams", "pilot", "budget", "campaign")
+TABLES = ("main", "ablation", "execution", "thresholds", "hparams", "pilot", "budget", "campaign", "metaworld-pilot")
 BASELINE_NAME = {"state": "DP", "image": "DP (image)", "pointcloud": "DP3"}
 
 
@@ -136,9 +138,21 @@ class BudgetArgs(PaperArgs):
     steps: tuple[int, ...] = (2000, 8000, 24000)
 
 
+@dataclasses.dataclass(frozen=True)
+class MetaWorldPilotArgs(PaperArgs):
+    """Meta-World's DP-only pilot (results/metaworld/PROTOCOL.md): DP (state, seed 0) trained 8000 steps on the
+    first two tasks, its checkpoints at 1000 / 2000 / 4000 / 8000 evaluated (100 episodes through the policy server);
+    chooses the training length T."""
+
+    budget: Literal["metaworld", "smoke"] = "metaworld"
+    tasks: tuple[str, ...] = ("metaworld:basketball", "metaworld:assembly")
+    seeds: tuple[int, ...] = (0,)
+    results: str = "results/metaworld"
+
+
 SUBCOMMANDS: dict[str, type] = {"main": MainArgs, "ablation": AblationArgs, "execution": ExecutionArgs,
                                 "thresholds": ThresholdsArgs, "hparams": HparamsArgs, "pilot": PilotArgs,
-                                "budget": BudgetArgs, "campaign": CampaignArgs}
+                                "budget": BudgetArgs, "campaign": CampaignArgs, "metaworld-pilot": MetaWorldPilotArgs}
 
 
 def table_name(args: PaperArgs) -> str:
@@ -249,10 +263,15 @@ def regime_text(args: PaperArgs) -> str:
     return f" ({'; '.join(parts)}; these replace the budget's demos or steps)" if parts else ""
 
 
+def protocol_path(args: PaperArgs) -> str:
+    """The protocol a table runs under: Meta-World's for external tasks, else the MJX campaign's."""
+    return ("results/metaworld/PROTOCOL.md" if any(":" in t for t in args.tasks) else "results/PROTOCOL.md")
+
+
 def results_header(title: str, args: PaperArgs, notes: list[str]) -> str:
     b = BUDGETS[args.budget]
     lines = [f"# {title}", "", f"Command: `{command_line(args)}`", "",
-             f"Protocol: `results/PROTOCOL.md`. Regime `{args.regime}`{regime_text(args)}; seeds {', '.join(str(s) for s in args.seeds)}"
+             f"Protocol: `{protocol_path(args)}`. Regime `{args.regime}`{regime_text(args)}; seeds {', '.join(str(s) for s in args.seeds)}"
              + (f" (single-frequency baselines also {', '.join(map(str, args.baseline_seeds))})"
                 if args.baseline_seeds else "") + ". "
              f"Cells: mean over seeds (one value per trained network) with its 95 % t interval over seeds. Budget "
@@ -645,6 +664,60 @@ def pilot_table(args: PilotArgs) -> str:
     return write_results(args, "DP pilot: the low-data regime per task", notes, table, records)
 
 
+def choose_training_steps(rates: dict[int, list[float]], tolerance: float = 0.05) -> int:
+    """The Meta-World pilot's rule: the fewest training steps whose mean success over the tasks is within
+    ``tolerance`` of the best step count's ({steps: [success per task]})."""
+    means = {steps: float(np.mean(r)) for steps, r in rates.items()}
+    best = max(means.values())
+    return min(steps for steps, m in means.items() if m >= best - tolerance - 1e-12)
+
+
+def metaworld_pilot_table(args: MetaWorldPilotArgs) -> str:
+    """Meta-World's DP pilot: per task, DP's success at each pilot checkpoint, the chosen T and the measured rates
+    the budget rules need; writes ``<results>/metaworld-pilot.md`` / ``.json``."""
+    camp = campaign(args)
+    dp = Column("DP", "state", DP)
+    seed = args.seeds[0]
+    pilot = METAWORLD_PILOT if args.budget == "metaworld" else {}
+    steps = METAWORLD_PILOT_STEPS if args.budget == "metaworld" else (6, 12)  # smoke: its two checkpoints
+    rates: dict[int, list[float]] = {}
+    rows, records, costs = [], [], []
+    for task in tqdm(args.tasks, desc="metaworld pilot", unit="task", disable=not args.progress):
+        ev = camp.evaluate(task, dp, seed, pilot, periodic=Periodic(eval_episodes(args), EXTERNAL_EVAL_SEED,
+                                                                    tuple(steps[:-1])))
+        if ev is None:
+            rows.append([task, *(["–"] * len(steps))])
+            continue
+        records.append(_table_record(camp, task, dp, seed, pilot, ev))
+        by_step = {c["step"]: c["success_rate"] for c in ev["periodic"]["checkpoints"]}
+        by_step[int(camp.record(task, dp, seed, pilot)["checkpoint_step"])] = ev["success_rate"]
+        for n in steps:
+            if n in by_step:
+                rates.setdefault(n, []).append(by_step[n])
+        rows.append([task, *(f"{100 * by_step[n]:.0f}" if n in by_step else "–" for n in steps)])
+        training = camp.record(task, dp, seed, pilot).get("training") or {}
+        cores = training.get("cpu_cores") or 2
+        per_eval = [ev["eval_s"] * (ev.get("cpu_cores") or 2)] + [
+            c["eval_s"] * (c.get("cpu_cores") or 2) for c in ev["periodic"]["checkpoints"]]
+        costs.append({"task": task, "train_cpu_s_per_step": (training.get("wall_time_s") or 0) * cores
+                      / max(training.get("steps") or 1, 1),
+                      "eval_cpu_s_per_100_episodes": float(np.median(per_eval)) * 100 / eval_episodes(args)})
+    complete = bool(rates) and all(len(r) == len(args.tasks) for r in rates.values())
+    chosen = choose_training_steps(rates) if complete else None
+    rows.append(["mean", *(f"{100 * np.mean(rates[n]):.1f}" if n in rates else "–" for n in steps)])
+    table = markdown_table(["Task", *(f"DP @ {n} steps (%)" for n in steps)], rows)
+    notes = [f"DP only (one stride), seed {seed}, one 8000-step run per task; each checkpoint evaluated on "
+             f"{eval_episodes(args)} episodes (initial-state seeds {EXTERNAL_EVAL_SEED + 1000 * seed}...).",
+             "Rule: T = the fewest steps whose mean success over the tasks is within 5 points of the best."
+             + (f" **T = {chosen}**." if chosen else " Not all checkpoints evaluated yet."),
+             "Measured costs (CPU-seconds): " + "; ".join(
+                 f"{c['task']}: training {c['train_cpu_s_per_step']:.2f} s/step, evaluation "
+                 f"{c['eval_cpu_s_per_100_episodes']:.0f} s per 100 episodes" for c in costs)]
+    write_json(os.path.join(args.results, "metaworld-pilot_choice.json"),
+               {"T": chosen, "rates": {str(k): v for k, v in rates.items()}, "costs": costs})
+    return write_results(args, "Meta-World DP pilot: success by training length", notes, table, records)
+
+
 COLUMNS = {"main": main_columns, "ablation": lambda args: [Column(label, "state", c) for label, c in ABLATION],
            "budget": lambda args: list(BUDGET_COLUMNS),
            "execution": lambda args: list(EXECUTION), "thresholds": thresholds_columns, "hparams": hparams_columns}
@@ -948,7 +1021,7 @@ def campaign_table(args: "CampaignArgs") -> str:
 
 BUILDERS = {"main": main_table, "ablation": ablation_table, "execution": execution_table,
             "thresholds": thresholds_table, "hparams": hparams_table, "pilot": pilot_table,
-            "budget": budget_table, "campaign": campaign_table}
+            "budget": budget_table, "campaign": campaign_table, "metaworld-pilot": metaworld_pilot_table}
 
 
 

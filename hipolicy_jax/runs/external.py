@@ -1,0 +1,97 @@
+"""A run of an external task (``metaworld:<task>``, ``envs.external``) through its bridge, which lives in its own venv:
+collecting its demos and evaluating a trained run closed-loop.
+
+Both run the suite's bridge as a subprocess (``ExternalSuite.collect`` / ``.evaluate``); evaluation serves the run's
+policy here with the project's server (``deploy``, on a free localhost port, batches of up to ``envs``) while the
+bridge runs the episodes against it. Nothing here imports the simulator.
+
+``evaluate_run`` returns the bridge's record (``metaworld_bridge.evaluate``): per episode ``seed``, ``success``,
+``steps``, ``decisions``, ``strides`` (counts), ``mean_entropy``, plus the policy's manifest entries and timings.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shlex
+import subprocess
+import tempfile
+import time
+
+from hipolicy_jax.config import InferenceConfig
+from hipolicy_jax.envs import external
+from hipolicy_jax.runs.records import params_fingerprint
+
+
+def _run(command: str, what: str, timeout: float | None = None) -> subprocess.CompletedProcess:
+    """Run a bridge ``command`` (a shell-free argument string) from the repository root; ``RuntimeError`` with its
+    last lines when it fails."""
+    r = subprocess.run(shlex.split(command), capture_output=True, text=True, timeout=timeout)
+    if r.returncode != 0:
+        tail = "\n".join((r.stderr or r.stdout).strip().splitlines()[-5:])
+        raise RuntimeError(f"{what} failed ({command}):\n{tail}")
+    return r
+
+
+def check_bridge(name: str) -> None:
+    """``FileNotFoundError`` naming the set-up command unless the suite's bridge venv exists."""
+    suite = external.SUITES[name.partition(":")[0]]
+    python = shlex.split(suite.collect)[0]
+    if not os.path.exists(python):
+        raise FileNotFoundError(f"task {name}: its bridge's venv ({python}) is missing; make it with `{suite.setup}`")
+
+
+def collect_demos(name: str, episodes: int, path: str, *, num_points: int | None, max_steps: int,
+                  log=print) -> str:
+    """Collect ``episodes`` expert demos of the external task ``name`` into ``path`` (the bridge's zarr); → its
+    summary line."""
+    external.check_name(name)
+    check_bridge(name)
+    suite = external.SUITES[name.partition(":")[0]]
+    task = name.partition(":")[2]
+    cmd = suite.collect.format(task=task, episodes=episodes, path=path)
+    cmd += " --no-progress" + f" --max-steps {max_steps}"
+    cmd += " --no-point-cloud" if num_points is None else f" --num-points {num_points}"
+    t0 = time.perf_counter()
+    line = _run(cmd, f"collecting {name} demos").stdout.strip().splitlines()[-1]
+    log(f"[external] {line} ({time.perf_counter() - t0:.0f} s)")
+    return line
+
+
+def evaluate_run(run_dir: str, *, episodes: int, first_seed: int, max_steps: int, step: int | None = None,
+                 inference: InferenceConfig | None = None, envs: int = 8, timeout: float | None = None,
+                 log=print) -> dict:
+    """Serve the run at ``run_dir`` (checkpoint ``step``, default the latest; its stored inference settings unless
+    ``inference``) and evaluate it on ``episodes`` episodes of its task from initial-state seeds ``first_seed``, ...
+    with its bridge, ``envs`` at a time; → the bridge's record plus ``checkpoint_step`` and the network's
+    ``params_sha256`` (``records.params_fingerprint``)."""
+    from hipolicy_jax.deploy.backend import InProcessBackend
+    from hipolicy_jax.deploy.server import PolicyServer, ServerConfig
+
+    backend = InProcessBackend.from_run(run_dir, inference, step)
+    name = backend.metadata["task"]
+    external.check_name(name)
+    check_bridge(name)
+    suite = external.SUITES[name.partition(":")[0]]
+    envs = max(1, min(envs, episodes))
+    server = PolicyServer(backend, ServerConfig(port=0, max_batch=envs), log=lambda msg: None)
+    server.start_in_thread()
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            out = os.path.join(tmp, "eval.json")
+            cmd = suite.evaluate.format(task=name.partition(":")[2], url=f"ws://127.0.0.1:{server.port}",
+                                        episodes=episodes, first_seed=first_seed, envs=envs, max_steps=max_steps,
+                                        out=out)
+            _run(cmd + " --no-progress", f"evaluating {run_dir} on {name}", timeout)
+            with open(out) as f:
+                record = json.load(f)
+    finally:
+        server.stop()
+    record["checkpoint_step"] = backend.metadata.get("checkpoint_step")
+    record["params_sha256"] = params_fingerprint(backend._args.params)
+    log(f"[external] {name} step {record['checkpoint_step']}: {record['successes']}/{record['episodes']} success "
+        f"({record['seconds']['total']:.0f} s)")
+    return record
+
+
+__all__ = ["check_bridge", "collect_demos", "evaluate_run"]
