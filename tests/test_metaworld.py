@@ -233,3 +233,72 @@ def test_farthest_point_sampling_is_deterministic_and_spread():
     np.testing.assert_array_equal(idx, farthest_point_indices(pts, 8))
     np.testing.assert_array_equal(farthest_point_indices(pts[:3], 7), [0, 1, 2, 0, 1, 2, 0])  # few points: cyclic
     assert farthest_point_indices(pts[:0], 4).size == 0
+
+
+def test_metaworld_budget_layout():
+    """The metaworld budget's runs: task dirs without ':', one 11-demo buffer for every column, 10 evenly spaced
+    checkpoints kept (a pilot's explicit interval keeps all of its own), 512 points for DP3, the 200-step limit."""
+    from hipolicy_jax.runs.budgets import DP, METAWORLD_PILOT, run_config
+
+    cfg = run_config("metaworld", "metaworld:hammer", "state", DP, 2, run_changes={"train.num_steps": 3000})
+    assert cfg.out_dir() == os.path.join("runs/paper", "metaworld", "metaworld_hammer", "state", "dp_t3000", "seed2")
+    assert cfg.data_path() == os.path.join("data", "metaworld_hammer_11.zarr") and cfg.episodes == 11
+    assert (cfg.train.ckpt_every, cfg.train.ckpt_keep, cfg.train.seed) == (300, 10, 2) and not cfg.final_eval
+    pc = run_config("metaworld", "metaworld:hammer", "pointcloud", (), 0)
+    assert pc.data_path() == cfg.data_path() and pc.policy.encoder.num_points == 512
+    assert pc.policy.encoder.state_dims == 4 and pc.policy.diffusion.prediction_type == "sample"
+    pilot = run_config("metaworld", "metaworld:hammer", "state", DP, 0, run_changes=METAWORLD_PILOT)
+    assert (pilot.train.num_steps, pilot.train.ckpt_every, pilot.train.ckpt_keep) == (8000, 1000, 8)
+    assert envs.episode_limit("metaworld:hammer") == 200
+
+
+def test_external_summary_and_dp3_metric():
+    from hipolicy_jax.runs.campaign import dp3_metric, external_summary
+    from hipolicy_jax.runs.tables import choose_training_steps
+
+    eps = [{"seed": 1, "success": True, "steps": 60, "decisions": 5, "strides": {"1": 2, "3": 3}, "mean_entropy": 0.5},
+           {"seed": 2, "success": False, "steps": 200, "decisions": 25, "strides": {"1": 25}, "mean_entropy": None},
+           {"seed": 3, "success": True, "steps": 100, "decisions": 10, "strides": {"2": 10}, "mean_entropy": 1.5}]
+    s = external_summary({"per_episode": eps})
+    assert s["success_rate"] == pytest.approx(2 / 3) and s["mean_steps_success"] == 80.0
+    assert s["mean_steps"] == 120.0 and s["mean_decisions"] == pytest.approx(40 / 3)
+    assert s["mean_actions_per_decision"] == pytest.approx(360 / 40)
+    assert (s["stride1_frac"], s["stride2_frac"], s["stride3_frac"]) == (27 / 40, 10 / 40, 3 / 40)
+    assert s["mean_entropy"] == 1.0  # episodes without an entropy (one stride) are left out
+    assert np.isnan(external_summary({"per_episode": eps[1:2]})["mean_steps_success"])
+    # DP3's metric: the mean of the 5 best periodic rates (all of them when fewer)
+    assert dp3_metric([0.1, 0.9, 0.5, 0.3, 0.7, 0.2, 0.6]) == pytest.approx((0.9 + 0.7 + 0.6 + 0.5 + 0.3) / 5)
+    assert dp3_metric([0.4, 0.2]) == pytest.approx(0.3) and dp3_metric([]) is None
+    # the pilot's rule: the fewest steps within 5 points of the best mean over tasks
+    assert choose_training_steps({1000: [0.2, 0.4], 2000: [0.5, 0.6], 4000: [0.6, 0.6], 8000: [0.55, 0.6]}) == 2000
+    assert choose_training_steps({1000: [0.2, 0.4], 2000: [0.5, 0.5], 4000: [0.6, 0.62]}) == 4000
+    assert choose_training_steps({1000: [0.0, 0.0], 2000: [0.0, 0.0]}) == 1000
+
+
+@needs_venv
+@pytest.mark.slow
+def test_metaworld_pilot_end_to_end(tmp_path):
+    """The campaign stage on Meta-World (smoke budget): demos collected through the bridge, a DP run trained, its
+    final network and both kept checkpoints evaluated through the served policy, one record per network with the
+    periodic evaluations apart; the table rebuilds from the records alone."""
+    from experiments.paper import main as paper, parse_args
+
+    flags = ["--budget", "smoke", "--tasks", "metaworld:assembly", "--runs", str(tmp_path / "runs"), "--data",
+             str(tmp_path / "data"), "--records", str(tmp_path / "rec"), "--results", str(tmp_path / "res"),
+             "--episodes", "2", "--no-progress"]
+    md = paper(parse_args(["metaworld-pilot", *flags]))
+    rec = json.loads((tmp_path / "rec" / "smoke" / "metaworld_assembly" / "state" / "dp" / "seed0.json").read_text())
+    (ev,) = rec["evaluations"].values()
+    assert ev["first_seed"] == 1_000_000 and ev["max_steps"] == 200 and len(ev["success"]) == 2
+    assert ev["network"]["params_sha256"] == rec["network"]["params_sha256"]
+    rows = ev["periodic"]["checkpoints"]
+    assert [r["step"] for r in rows] == [6] and rows[0]["first_seed"] == 1_000_000  # the pilot: main states
+    assert rows[0]["params_sha256"] != rec["network"]["params_sha256"]  # another network, kept apart
+    assert ev["dp3_metric"] == rows[0]["success_rate"]
+    text = open(md).read()
+    assert "results/metaworld/PROTOCOL.md" in text and "| metaworld:assembly |" in text
+    choice = json.loads((tmp_path / "res" / "metaworld-pilot_choice.json").read_text())
+    assert choice["T"] in (6, 12) and choice["costs"][0]["train_cpu_s_per_step"] > 0
+    # rebuilt from the records alone: the same table
+    again = paper(parse_args(["metaworld-pilot", *flags, "--from-records"]))
+    assert open(again).read().split("| Task")[1] == text.split("| Task")[1]
