@@ -39,7 +39,7 @@ from hipolicy_jax.deploy.client import PolicyClient
 from hipolicy_jax.deploy.export import export_backend
 from hipolicy_jax.deploy.server import ServerConfig
 from hipolicy_jax.models.policy_net import init_policy_params
-from hipolicy_jax.runs.budgets import BUDGETS
+from hipolicy_jax.campaigns.budgets import BUDGETS
 from hipolicy_jax.runs.cli import enable_compilation_cache
 
 NAME = "serving"

@@ -66,7 +66,7 @@ from hipolicy_jax import jsonio
 from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.evaluation import calibration, eval_summary
 from hipolicy_jax.heads import make_head
-from hipolicy_jax.runs.budgets import run_config
+from hipolicy_jax.campaigns.budgets import run_config
 from hipolicy_jax.runs.store import Run, eval_key, heldout_dataset, load_run, make_evaluator
 from hipolicy_jax.runs.train import RunConfig
 from hipolicy_jax.sampling import make_sampler, select_frequency

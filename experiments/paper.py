@@ -40,11 +40,11 @@ import time
 import tyro
 
 from hipolicy_jax.runs.cli import enable_compilation_cache
-from hipolicy_jax.runs.tables import SUBCOMMANDS, PaperArgs, build, table_name
+from hipolicy_jax.campaigns.tables import SUBCOMMANDS, PaperArgs, build, table_name
 
 
 def parse_args(argv: list[str] | None = None) -> PaperArgs:
-    """Parse ``TABLE [--flags]`` into the table's args dataclass (``hipolicy_jax.runs.tables.SUBCOMMANDS``)."""
+    """Parse ``TABLE [--flags]`` into the table's args dataclass (``hipolicy_jax.campaigns.tables.SUBCOMMANDS``)."""
     return tyro.extras.subcommand_cli_from_dict(SUBCOMMANDS, args=argv, description=__doc__)
 
 

@@ -23,11 +23,11 @@ from hipolicy_jax.config import InferenceConfig
 
 from experiments import calibrate, evaluate, paper
 from hipolicy_jax import envs, jsonio
-from hipolicy_jax.runs.budgets import BUDGETS, DP, variant_name
+from hipolicy_jax.campaigns.budgets import BUDGETS, DP, variant_name
 from hipolicy_jax.checkpoint import config_to_dict
-from hipolicy_jax.runs.campaign import (Campaign, Column, CostModel, Deadline, Job, choose_low_regime, parse_until,
+from hipolicy_jax.campaigns.campaign import (Campaign, Column, CostModel, Deadline, Job, choose_low_regime, parse_until,
                                         pilot_candidates, schedule, shard)
-from hipolicy_jax.runs import report, tables
+from hipolicy_jax.campaigns import report, tables
 from hipolicy_jax.runs.cli import parse_with_run_inference
 from hipolicy_jax.runs.lock import CAMPAIGN_LOCK_FILE, RunLock
 from hipolicy_jax.runs.store import load_run, make_evaluator
@@ -760,7 +760,7 @@ def test_campaign_until_skips_what_does_not_fit(tmp_path, capsys):
 def test_campaign_no_tables_leaves_the_tables_and_readme_alone(tmp_path):
     """A campaign narrowed to force a few runs (--tasks / --seeds, no shard) ends by rebuilding the tables and the
     README section for its subset; with --no-tables it writes only its plan of what is left."""
-    from hipolicy_jax.runs.campaign import README_BEGIN, README_END
+    from hipolicy_jax.campaigns.campaign import README_BEGIN, README_END
 
     readme = tmp_path / "README.md"
     readme.write_text(f"intro\n{README_BEGIN}\nthe full tables\n{README_END}\n")
@@ -815,7 +815,7 @@ def test_campaign_skips_the_runs_another_campaign_process_works_on(tmp_path, cap
 def test_readme_section_from_table_files(tmp_path):
     """The README's campaign section: each table's markdown one heading level down, named by its file, with its plot;
     only the text between the markers is replaced."""
-    from hipolicy_jax.runs.campaign import README_BEGIN, README_END, readme_section, update_readme
+    from hipolicy_jax.campaigns.campaign import README_BEGIN, README_END, readme_section, update_readme
     results = tmp_path / "results"
     results.mkdir()
     (results / "main_rlow.md").write_text("# Main results\n\n- Cost: 1.0 CPU-hours\n\n| a |\n|---|\n| 1 |\n")
@@ -893,7 +893,7 @@ def test_compilation_cache_is_shared_across_processes(tmp_path):
 def test_results_header_names_each_tasks_regime():
     """A low-data table's header says what the regime changed per task (demos or steps), since the budget's note
     describes R100; R100's header adds nothing."""
-    from hipolicy_jax.runs.budgets import REGIMES
+    from hipolicy_jax.campaigns.budgets import REGIMES
     rlow = tables.AblationArgs(regime="rlow", tasks=tuple(REGIMES["rlow"]))
     header = tables.results_header("T", rlow, [])
     for task, changes in REGIMES["rlow"].items():

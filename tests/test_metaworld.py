@@ -237,24 +237,25 @@ def test_farthest_point_sampling_is_deterministic_and_spread():
 
 def test_metaworld_budget_layout():
     """The metaworld budget's runs: task dirs without ':', one 11-demo buffer for every column, 10 evenly spaced
-    checkpoints kept (a pilot's explicit interval keeps all of its own), 512 points for DP3, the 200-step limit."""
-    from hipolicy_jax.runs.budgets import DP, METAWORLD_PILOT, run_config
+    checkpoints kept and room for two more (a pilot's explicit interval keeps all of its own), 512 points for DP3,
+    the 200-step limit."""
+    from hipolicy_jax.campaigns.budgets import DP, METAWORLD_PILOT, run_config
 
     cfg = run_config("metaworld", "metaworld:hammer", "state", DP, 2, run_changes={"train.num_steps": 3000})
     assert cfg.out_dir() == os.path.join("runs/paper", "metaworld", "metaworld_hammer", "state", "dp_t3000", "seed2")
     assert cfg.data_path() == os.path.join("data", "metaworld_hammer_11.zarr") and cfg.episodes == 11
-    assert (cfg.train.ckpt_every, cfg.train.ckpt_keep, cfg.train.seed) == (300, 10, 2) and not cfg.final_eval
+    assert (cfg.train.ckpt_every, cfg.train.ckpt_keep, cfg.train.seed) == (300, 12, 2) and not cfg.final_eval
     pc = run_config("metaworld", "metaworld:hammer", "pointcloud", (), 0)
     assert pc.data_path() == cfg.data_path() and pc.policy.encoder.num_points == 512
     assert pc.policy.encoder.state_dims == 4 and pc.policy.diffusion.prediction_type == "sample"
     pilot = run_config("metaworld", "metaworld:hammer", "state", DP, 0, run_changes=METAWORLD_PILOT)
-    assert (pilot.train.num_steps, pilot.train.ckpt_every, pilot.train.ckpt_keep) == (8000, 1000, 8)
+    assert (pilot.train.num_steps, pilot.train.ckpt_every, pilot.train.ckpt_keep) == (8000, 1000, 10)
     assert envs.episode_limit("metaworld:hammer") == 200
 
 
 def test_external_summary_and_dp3_metric():
-    from hipolicy_jax.runs.campaign import dp3_metric, external_summary
-    from hipolicy_jax.runs.tables import choose_training_steps
+    from hipolicy_jax.campaigns.campaign import dp3_metric, external_summary
+    from hipolicy_jax.campaigns.tables import choose_training_steps
 
     eps = [{"seed": 1, "success": True, "steps": 60, "decisions": 5, "strides": {"1": 2, "3": 3}, "mean_entropy": 0.5},
            {"seed": 2, "success": False, "steps": 200, "decisions": 25, "strides": {"1": 25}, "mean_entropy": None},
@@ -277,17 +278,19 @@ def test_external_summary_and_dp3_metric():
 
 @needs_venv
 @pytest.mark.slow
-def test_metaworld_pilot_end_to_end(tmp_path):
-    """The campaign stage on Meta-World (smoke budget): demos collected through the bridge, a DP run trained, its
-    final network and both kept checkpoints evaluated through the served policy, one record per network with the
-    periodic evaluations apart; the table rebuilds from the records alone."""
-    from experiments.paper import main as paper, parse_args
+def test_metaworld_campaign_end_to_end(tmp_path):
+    """The Meta-World campaign stage (smoke budget): the pilot collects demos through the bridge, trains DP and
+    evaluates its final network and its kept checkpoint through the served policy; the main table trains and
+    evaluates all four columns (state and point clouds) with periodic evaluations for DP3's metric, one record per
+    network; both tables rebuild from the records alone."""
+    from experiments.metaworld import main as metaworld, parse_args
 
-    flags = ["--budget", "smoke", "--tasks", "metaworld:assembly", "--runs", str(tmp_path / "runs"), "--data",
+    flags = ["--budget", "smoke", "--tasks", "assembly", "--runs", str(tmp_path / "runs"), "--data",
              str(tmp_path / "data"), "--records", str(tmp_path / "rec"), "--results", str(tmp_path / "res"),
              "--episodes", "2", "--no-progress"]
-    md = paper(parse_args(["metaworld-pilot", *flags]))
-    rec = json.loads((tmp_path / "rec" / "smoke" / "metaworld_assembly" / "state" / "dp" / "seed0.json").read_text())
+    md = metaworld(parse_args(["pilot", *flags]))
+    rec = json.loads((tmp_path / "rec" / "smoke" / "metaworld_assembly" / "state" / "dp_ckptevery6" /
+                      "seed0.json").read_text())
     (ev,) = rec["evaluations"].values()
     assert ev["first_seed"] == 1_000_000 and ev["max_steps"] == 200 and len(ev["success"]) == 2
     assert ev["network"]["params_sha256"] == rec["network"]["params_sha256"]
@@ -295,10 +298,32 @@ def test_metaworld_pilot_end_to_end(tmp_path):
     assert [r["step"] for r in rows] == [6] and rows[0]["first_seed"] == 1_000_000  # the pilot: main states
     assert rows[0]["params_sha256"] != rec["network"]["params_sha256"]  # another network, kept apart
     assert ev["dp3_metric"] == rows[0]["success_rate"]
+    assert ev["eval_s"] == pytest.approx(ev["main_eval_s"] + rows[0]["eval_s"])
     text = open(md).read()
     assert "results/metaworld/PROTOCOL.md" in text and "| metaworld:assembly |" in text
-    choice = json.loads((tmp_path / "res" / "metaworld-pilot_choice.json").read_text())
+    assert "python -m experiments.metaworld pilot" in text
+    choice = json.loads((tmp_path / "res" / "pilot_choice.json").read_text())
     assert choice["T"] in (6, 12) and choice["costs"][0]["train_cpu_s_per_step"] > 0
-    # rebuilt from the records alone: the same table
-    again = paper(parse_args(["metaworld-pilot", *flags, "--from-records"]))
+    again = metaworld(parse_args(["pilot", *flags, "--from-records"]))
     assert open(again).read().split("| Task")[1] == text.split("| Task")[1]
+
+    # the main table: its own runs (the pilot's are not table runs), the demos reused
+    main_flags = [*flags, "--seeds", "0", "--pointcloud-tasks", "assembly", "--published",
+                  str(tmp_path / "published.json")]
+    (tmp_path / "published.json").write_text(json.dumps({"tasks": {"assembly": {"dp_image": [15, 1], "dp3": [99, 1]}}}))
+    md = metaworld(parse_args(["main", *main_flags]))
+    text = open(md).read()
+    for column in ("DP", "DP+HiPolicy", "DP3", "DP3+HiPolicy"):
+        assert f" {column} |" in text.split("\n## ")[0]
+    assert "15 ± 1" in text and "99 ± 1" in text  # published, beside ours
+    table = json.loads((tmp_path / "res" / "main.json").read_text())["records"]
+    assert sorted(r["column"] for r in table) == ["DP", "DP+HiPolicy", "DP3", "DP3+HiPolicy"]
+    for r in table:
+        assert len(r["success"]) == 2 and r["dp3_metric"] is not None
+        assert [c["step"] for c in r["periodic"]["checkpoints"]] == [6, 12]
+        assert all(c["first_seed"] == 2_000_000 for c in r["periodic"]["checkpoints"])
+    hip = json.loads((tmp_path / "rec" / "smoke" / "metaworld_assembly" / "pointcloud" / "hipolicy" /
+                      "seed0.json").read_text())
+    assert hip["policy"]["encoder"]["obs_type"] == "pointcloud" and hip["policy"]["chunk"]["strides"] != [1]
+    assert metaworld(parse_args(["main", *main_flags, "--from-records"])) == md
+    assert open(md).read().split("| Task")[1:] == text.split("| Task")[1:]

@@ -37,7 +37,8 @@ BUDGETS: dict[str, Budget] = {
         train=TrainConfig(batch_size=16, num_steps=12, warmup_steps=2, log_every=6, ckpt_every=6),
         eval=EvalConfig(episodes=3, every=0),
         inference=InferenceConfig(num_samples=4, sampler="auto", num_steps=2, calib_windows=16),
-        demos=6, val_ratio=0.34, note="tiny model, 12 steps x batch 16 on 6 demos; 3 episodes, N=4, DDIM 2 steps"),
+        demos=6, val_ratio=0.34, periodic_episodes=2,  # (external tasks only: the kept checkpoints, 2 episodes)
+        note="tiny model, 12 steps x batch 16 on 6 demos; 3 episodes, N=4, DDIM 2 steps"),
     "cpu": Budget(
         policy=CPU_POLICY,
         train=dataclasses.replace(CPU_TRAIN, num_steps=2000),
@@ -67,6 +68,11 @@ BUDGETS: dict[str, Budget] = {
 # The Meta-World training length T, fixed by the DP pilot (results/metaworld/PROTOCOL.md "Pilot entries"); None until
 # the pilot has chosen it (the campaign refuses to start the table's runs before).
 METAWORLD_STEPS: int | None = None
+# The budget rules' task counts (PROTOCOL.md "Budget" rules 1 and 2, fixed after the pilot): the state columns run on
+# the first METAWORLD_STATE_TASKS of the protocol's task order (None: all 16), the point-cloud columns on the first
+# METAWORLD_POINTCLOUD_TASKS (None: none yet).
+METAWORLD_STATE_TASKS: int | None = None
+METAWORLD_POINTCLOUD_TASKS: int | None = None
 # The Meta-World pilot: DP, seed 0, 8000 steps with checkpoints at 1000 / 2000 / 4000 / 8000 evaluated.
 METAWORLD_PILOT = {"train.num_steps": 8000, "train.ckpt_every": 1000}
 METAWORLD_PILOT_STEPS = (1000, 2000, 4000, 8000)
@@ -133,7 +139,7 @@ def regime_changes(regime: str, task: str) -> dict[str, Any]:
     if regime == "r100":
         return {}
     if task not in REGIMES[regime]:
-        raise ValueError(f"regime {regime}: no entry for {task} yet in hipolicy_jax/runs/budgets.py REGIMES; run the "
+        raise ValueError(f"regime {regime}: no entry for {task} yet in hipolicy_jax/campaigns/budgets.py REGIMES; run the "
                          f"DP pilot first (python -m experiments.paper pilot --tasks {task}) and record its choice")
     return dict(REGIMES[regime][task])
 
@@ -174,10 +180,11 @@ def run_config(budget: str, task: str, obs_type: str, changes, seed: int, *, run
                                   **dict(changes)})
     demos = int(run_changes.get("episodes", b.demos))
     train = replace(b.train, seed=seed, **{k[6:]: v for k, v in run_changes.items() if k.startswith("train.")})
+    # every periodic checkpoint kept, with room for the first step's and an interrupted run's extra saves
     if b.checkpoints and "train.ckpt_every" not in run_changes:
-        train = replace(train, ckpt_every=max(train.num_steps // b.checkpoints, 1), ckpt_keep=b.checkpoints)
-    elif "train.ckpt_every" in run_changes:  # every checkpoint kept (a pilot reads them)
-        train = replace(train, ckpt_keep=max(-(-train.num_steps // train.ckpt_every), train.ckpt_keep))
+        train = replace(train, ckpt_every=max(train.num_steps // b.checkpoints, 1), ckpt_keep=b.checkpoints + 2)
+    elif "train.ckpt_every" in run_changes:  # a pilot reads every checkpoint at its interval
+        train = replace(train, ckpt_keep=max(-(-train.num_steps // train.ckpt_every) + 2, train.ckpt_keep))
     if external.is_external(task):
         # one buffer (state and point clouds) serves every column: external.default_data_path
         data_path = os.path.join(data, os.path.basename(external.default_data_path(task, demos)))

@@ -29,10 +29,11 @@ from hipolicy_jax.checkpoint import config_to_dict
 from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.evaluation import calibration
 from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
-from hipolicy_jax.runs.budgets import BUDGETS, run_config
+from hipolicy_jax.campaigns.budgets import BUDGETS, run_config
+from hipolicy_jax.campaigns.report import changes_text
 from hipolicy_jax.runs.calibrate import run_entropies
 from hipolicy_jax.runs import records as rec_lib
-from hipolicy_jax.runs.lock import CAMPAIGN_LOCK_FILE, RunLock
+from hipolicy_jax.runs.lock import CAMPAIGN_LOCK_FILE, RunLock, RunLockedError
 from hipolicy_jax.runs.store import Run, eval_key, make_evaluator, read_json, write_json
 from hipolicy_jax.runs.train import RunConfig, cpu_cores, ensure_trained, finished, prepare_out_dir
 
@@ -46,7 +47,8 @@ DP3_METRIC_BEST = 5  # DP3's metric: the mean of the 5 best periodic evaluations
 
 class Periodic(NamedTuple):
     """Evaluations of a run's kept checkpoints (an external task's): ``episodes`` each from initial-state seeds
-    ``seed_base + 1000 k + i``; ``steps``: only these checkpoints (None: every kept one)."""
+    ``seed_base + 1000 k + i``; ``steps``: only these checkpoints (None: every kept one at the run's checkpoint
+    interval)."""
 
     episodes: int
     seed_base: int
@@ -270,8 +272,9 @@ class Campaign:
                                 else None)
         if periodic is not None:
             rows = []
-            for step in checkpoint_steps(run.run_dir):
-                if periodic.steps is not None and step not in periodic.steps:
+            every = int(run.policy.meta["train"]["ckpt_every"])
+            for step in checkpoint_steps(run.run_dir):  # the periodic ones (not step 1's nor an interrupt's)
+                if step % every or (periodic.steps is not None and step not in periodic.steps):
                     continue
                 t0 = time.perf_counter()
                 first = periodic.seed_base + 1000 * seed
@@ -286,6 +289,9 @@ class Campaign:
                                       "note": "other networks of this run (its kept checkpoints, at the final "
                                               "network's thresholds): DP3's metric only", "checkpoints": rows}
             evaluation["dp3_metric"] = dp3_metric([r["success_rate"] for r in rows])
+        # eval_s: everything this evaluation cost (what the cost model plans with); main_eval_s: the final network's
+        evaluation["main_eval_s"] = evaluation["eval_s"]
+        evaluation["eval_s"] += sum(r["eval_s"] for r in evaluation.get("periodic", {}).get("checkpoints", []))
         return evaluation
 
 
@@ -498,6 +504,46 @@ class Deadline:
         return False
 
 
+def work_off(camp: Campaign, costs: list[dict], run_of: Callable[[Job], str], *, until: str = "",
+             progress: bool = True, periodic: Periodic | None = None) -> None:
+    """Make every pending evaluation of ``costs`` (``CostModel.estimate`` rows, in order) under ONE progress bar
+    with its ETA, each kept in its run's record as it finishes; a job whose estimated time would end after
+    ``until`` (``parse_until``) is skipped, as is a run another campaign process holds. Without a progress bar
+    (a background run's log) one line per finished job."""
+    from tqdm.auto import tqdm
+
+    known = [c["seconds"] for c in costs if c["seconds"]]
+    guess = float(np.median(known)) if known else 1.0  # a job nothing measured yet
+    deadline = Deadline(parse_until(until), cpu_cores(), guess)
+    # the bar counts estimated seconds of work (recorded jobs cost 0), so its ETA is the measured rate at which
+    # the estimate is worked off: it corrects itself as runs finish faster or slower than their records said
+    bar = tqdm(total=round(sum(guess if c["seconds"] is None else c["seconds"] for c in costs)), desc="campaign",
+               unit="s", disable=not progress, dynamic_ncols=True,
+               bar_format="{l_bar}{bar}| {percentage:.0f}% of the estimated work [{elapsed}<{remaining}] {postfix}")
+    for i, c in enumerate(costs):
+        task, col, seed, changes = c["job"]
+        label = f"{i + 1}/{len(costs)}: {task} seed {seed} {col.label} {changes_text(dict(changes))}"
+        bar.set_postfix_str(label)
+        if not deadline.admits(CostModel.refresh(camp.records, camp.runs, camp, c), run_of(c["job"])):
+            bar.update(round(guess if c["seconds"] is None else c["seconds"]))
+            estimate = "unmeasured" if c["seconds"] is None else f"{c['seconds'] / deadline.cores:.0f} s"
+            tqdm.write(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: skipped, estimated {estimate}, "
+                       f"{max(deadline.seconds_left(), 0):.0f} s left before --until {until}")
+            continue
+        t0 = time.perf_counter()
+        try:
+            evaluation = camp.evaluate(task, col, seed, dict(changes), periodic=periodic)
+        except RunLockedError as e:  # another campaign process (a shard started over it) works on this run
+            bar.update(round(guess if c["seconds"] is None else c["seconds"]))
+            tqdm.write(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: skipped, {e}")
+            continue
+        bar.update(round(guess if c["seconds"] is None else c["seconds"]))
+        if not progress and not c["done"] and evaluation is not None:  # a background run's log: a line a job
+            print(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: "
+                  f"{100 * evaluation['success_rate']:.0f} % in {time.perf_counter() - t0:.0f} s", flush=True)
+    bar.close()
+
+
 README_BEGIN = "<!-- campaign tables: written by `python -m experiments.paper campaign` from results/*.md -->"
 README_END = "<!-- end of campaign tables -->"
 
@@ -554,4 +600,4 @@ def choose_low_regime(tried: list[tuple[dict, float]], low: float = 0.15, high: 
 
 __all__ = ["EXTERNAL_EVAL_SEED", "EXTERNAL_PERIODIC_SEED", "Periodic", "checkpoint_steps", "dp3_metric",
            "external_summary", "README_BEGIN", "README_END", "Campaign", "Column", "choose_low_regime", "evaluation_key",
-           "pilot_candidates", "readme_section", "record_path", "run_summary", "update_readme"]
+           "pilot_candidates", "readme_section", "record_path", "run_summary", "update_readme", "work_off"]

@@ -21,14 +21,12 @@ from tqdm.auto import tqdm
 from hipolicy_jax.config import PolicyConfig
 from hipolicy_jax.envs import TASK_PRECISE
 from hipolicy_jax.evaluation import stats
-from hipolicy_jax.runs.budgets import (BUDGETS, DP, METAWORLD_PILOT, METAWORLD_PILOT_STEPS, REGIMES,
-                                       regime_changes, run_config)
-from hipolicy_jax.runs.campaign import (EXTERNAL_EVAL_SEED, README_BEGIN, README_END, Campaign, Column, CostModel,
-                                        Deadline, Job, Periodic,
-                                        choose_low_regime, parse_until, pilot_candidates, readme_section, schedule,
+from hipolicy_jax.campaigns.budgets import BUDGETS, DP, REGIMES, regime_changes, run_config
+from hipolicy_jax.campaigns.campaign import (README_BEGIN, README_END, Campaign, Column, CostModel, Deadline, Job,
+                                            choose_low_regime, parse_until, work_off, pilot_candidates, readme_section, schedule,
                                         shard, update_readme)
 from hipolicy_jax.runs.lock import RunLockedError
-from hipolicy_jax.runs.report import (RATE_BOUNDS, bar_figure, changes_text, ci, cost_note, interval_text, leave_one_out,
+from hipolicy_jax.campaigns.report import (RATE_BOUNDS, bar_figure, changes_text, ci, cost_note, interval_text, leave_one_out,
                                       markdown_table, outcomes, p_text, paired, paired_cell, relative_gain,
                                       stride_cell, task_mean, verdict_text)
 from hipolicy_jax.runs.store import read_json, write_json
@@ -36,7 +34,7 @@ from hipolicy_jax.runs.train import RunConfig, cpu_cores
 
 TaskName = Literal["press_button", "latch_door", "stack_cubes", "pick_place"]
 ObsName = Literal["state", "image", "pointcloud"]
-TABLES = ("main", "ablation", "execution", "thresholds", "hparams", "pilot", "budget", "campaign", "metaworld-pilot")
+TABLES = ("main", "ablation", "execution", "thresholds", "hparams", "pilot", "budget", "campaign")
 BASELINE_NAME = {"state": "DP", "image": "DP (image)", "pointcloud": "DP3"}
 
 
@@ -138,30 +136,21 @@ class BudgetArgs(PaperArgs):
     steps: tuple[int, ...] = (2000, 8000, 24000)
 
 
-@dataclasses.dataclass(frozen=True)
-class MetaWorldPilotArgs(PaperArgs):
-    """Meta-World's DP-only pilot (results/metaworld/PROTOCOL.md): DP (state, seed 0) trained 8000 steps on the
-    first two tasks, its checkpoints at 1000 / 2000 / 4000 / 8000 evaluated (100 episodes through the policy server);
-    chooses the training length T."""
-
-    budget: Literal["metaworld", "smoke"] = "metaworld"
-    tasks: tuple[str, ...] = ("metaworld:basketball", "metaworld:assembly")
-    seeds: tuple[int, ...] = (0,)
-    results: str = "results/metaworld"
-
-
 SUBCOMMANDS: dict[str, type] = {"main": MainArgs, "ablation": AblationArgs, "execution": ExecutionArgs,
                                 "thresholds": ThresholdsArgs, "hparams": HparamsArgs, "pilot": PilotArgs,
-                                "budget": BudgetArgs, "campaign": CampaignArgs, "metaworld-pilot": MetaWorldPilotArgs}
+                                "budget": BudgetArgs, "campaign": CampaignArgs}
 
 
 def table_name(args: PaperArgs) -> str:
-    return next(k for k, v in SUBCOMMANDS.items() if type(args) is v)
+    """The table's sub-command: its class's ``TABLE`` (tables of other modules, e.g. ``campaigns.metaworld``), else
+    its entry in ``SUBCOMMANDS``."""
+    return getattr(type(args), "TABLE", None) or next(k for k, v in SUBCOMMANDS.items() if type(args) is v)
 
 
 def command_line(args: PaperArgs) -> str:
-    """The exact command reproducing ``args`` (every field spelled out; parses back to ``args``)."""
-    parts = ["python", "-m", "experiments.paper", table_name(args)]
+    """The exact command reproducing ``args`` (every field spelled out; parses back to ``args``): its class's
+    ``COMMAND`` module (default ``experiments.paper``) and sub-command."""
+    parts = ["python", "-m", getattr(type(args), "COMMAND", "experiments.paper"), table_name(args)]
     for f in dataclasses.fields(args):
         value, flag = getattr(args, f.name), "--" + f.name.replace("_", "-")
         if isinstance(value, bool):
@@ -207,7 +196,7 @@ def campaign(args: PaperArgs) -> Campaign:
                     from_records=args.from_records, progress=args.progress)
 
 
-def _table_record(camp: Campaign, task: str, col: Column, seed: int, run_changes: dict, evaluation: dict) -> dict:
+def table_record(camp: Campaign, task: str, col: Column, seed: int, run_changes: dict, evaluation: dict) -> dict:
     """One row of a table's JSON: the evaluation's numbers, its run dir and the run's training time."""
     run = camp.run_config(task, col, seed, run_changes).out_dir()
     training = camp.record(task, col, seed, run_changes).get("training") or {}
@@ -239,7 +228,7 @@ def collect(args: PaperArgs, columns: list[Column]) -> list[dict]:
         if evaluation is None:
             missing.append(f"{task} seed {seed} {col.label} {changes_text(changes)}")
             continue
-        records.append(_table_record(camp, task, col, seed, changes, evaluation))
+        records.append(table_record(camp, task, col, seed, changes, evaluation))
         steps = evaluation["mean_steps_success"]  # None (NaN in the record) when no episode succeeded
         tqdm.write(f"[paper] {task} seed {seed} {col.label}: success {evaluation['success_rate']:.2f}, steps "
                    f"(successful) {'–' if steps is None else f'{steps:.1f}'}")
@@ -264,8 +253,8 @@ def regime_text(args: PaperArgs) -> str:
 
 
 def protocol_path(args: PaperArgs) -> str:
-    """The protocol a table runs under: Meta-World's for external tasks, else the MJX campaign's."""
-    return ("results/metaworld/PROTOCOL.md" if any(":" in t for t in args.tasks) else "results/PROTOCOL.md")
+    """The protocol a table runs under: its class's ``PROTOCOL``, else the MJX campaign's."""
+    return getattr(type(args), "PROTOCOL", "results/PROTOCOL.md")
 
 
 def results_header(title: str, args: PaperArgs, notes: list[str]) -> str:
@@ -314,13 +303,16 @@ def success_by_task_figure(args: PaperArgs, records: list[dict], labels: list[st
 
 def grouped_rows(args: PaperArgs, records, columns: list[str], metric: str = "success_rate", scale: float = 100.0,
                  extra=None, rel_to: dict[str, str] | None = None,
-                 paired: list[tuple[str, str]] = ()) -> list[list[str]]:
-    """Rows per task, precise tasks first then non-precise, each group followed by its average, then the total.
-    ``extra(task) -> list[str]`` adds leading cells; ``rel_to`` {column: baseline column} adds relative gains to
-    average rows; ``paired`` [(new, base)] adds a paired-comparison cell per pair."""
+                 paired: list[tuple[str, str]] = (), groups: list[tuple[str, list[str]]] | None = None
+                 ) -> list[list[str]]:
+    """Rows per task by group — ``groups`` [(name, tasks)], default precise tasks then non-precise —, each group
+    followed by its average (when there are several), then the total. ``extra(task) -> list[str]`` adds leading
+    cells; ``rel_to`` {column: baseline column} adds relative gains to average rows; ``paired`` [(new, base)] adds a
+    paired-comparison cell per pair."""
     rows = []
-    precise = [t for t in args.tasks if TASK_PRECISE[t]]
-    other = [t for t in args.tasks if not TASK_PRECISE[t]]
+    if groups is None:
+        groups = [("precise", [t for t in args.tasks if TASK_PRECISE[t]]),
+                  ("non-precise", [t for t in args.tasks if not TASK_PRECISE[t]])]
     n_extra = len(extra(args.tasks[0])) if extra else 0
 
     def cells(tasks):
@@ -333,12 +325,13 @@ def grouped_rows(args: PaperArgs, records, columns: list[str], metric: str = "su
             out.append(ci(records, metric, table_seeds(args), tasks, scale, column=c) + gain)
         return out + [paired_cell(records, table_seeds(args), tasks, new, base) for new, base in paired]
 
-    for name, tasks in (("precise", precise), ("non-precise", other)):
+    several = sum(bool(tasks) for _, tasks in groups) > 1
+    for name, tasks in groups:
         for t in tasks:
             rows.append([t] + (extra(t) if extra else []) + cells([t]))
-        if tasks and precise and other:
+        if tasks and several:
             rows.append([f"**Average ({name})**"] + [""] * n_extra + cells(tasks))
-    rows.append([f"**{'Total average' if precise and other else 'Average'}**"] + [""] * n_extra
+    rows.append([f"**{'Total average' if several else 'Average'}**"] + [""] * n_extra
                 + cells(list(args.tasks)))
     return rows
 
@@ -350,7 +343,7 @@ def demo_steps(args: PaperArgs, task: str, obs_types: tuple[str, ...] = ("state"
     from hipolicy_jax.data.replay_buffer import ReplayBuffer
 
     demos = BUDGETS[args.budget].demos
-    for path in sorted(glob.glob(os.path.join(args.records, args.budget, task, "*", "*", "*.json"))):
+    for path in sorted(glob.glob(os.path.join(args.records, args.budget, task.replace(":", "_"), "*", "*", "*.json"))):
         d = read_json(path).get("demos")
         if d and d.get("episodes") == demos:
             return f"{d['frames'] / d['episodes']:.0f}"
@@ -629,7 +622,7 @@ def hparams_table(args: HparamsArgs) -> str:
 def pilot_table(args: PilotArgs) -> str:
     """The protocol's DP-only pilot: DP (seed ``args.seeds[0]``) at 100 demos, then the Rlow candidates until one
     lands in [15, 85] %; writes ``<results>/pilot.md`` / ``.json`` with the choice per task (to be recorded in
-    results/PROTOCOL.md and ``runs.budgets.REGIMES['rlow']`` before any HiPolicy run of that regime)."""
+    results/PROTOCOL.md and ``campaigns.budgets.REGIMES['rlow']`` before any HiPolicy run of that regime)."""
     camp = campaign(args)
     dp = Column("DP", "state", DP)
     seed = args.seeds[0]
@@ -638,13 +631,13 @@ def pilot_table(args: PilotArgs) -> str:
         base = camp.evaluate(task, dp, seed)
         tried = []
         if base is not None:
-            records.append(_table_record(camp, task, dp, seed, {}, base))
+            records.append(table_record(camp, task, dp, seed, {}, base))
             for changes in pilot_candidates(base["success_rate"]):
                 ev = camp.evaluate(task, dp, seed, changes)
                 if ev is None:
                     break
                 tried.append((changes, ev["success_rate"]))
-                records.append(_table_record(camp, task, dp, seed, changes, ev))
+                records.append(table_record(camp, task, dp, seed, changes, ev))
                 if 0.15 <= ev["success_rate"] <= 0.85:
                     break
         if tried:
@@ -658,64 +651,10 @@ def pilot_table(args: PilotArgs) -> str:
     table = markdown_table(["Task", "DP @ 100 demos (%)", "Candidates tried (DP success)", "Rlow"], rows)
     regimes = {t: c["run_changes"] for t, c in choices.items()}
     notes = [f"DP only (one stride), seed {seed}, {eval_episodes(args)} evaluation episodes per candidate.",
-             f"Record the choice in results/PROTOCOL.md and in hipolicy_jax/runs/budgets.py: "
+             f"Record the choice in results/PROTOCOL.md and in hipolicy_jax/campaigns/budgets.py: "
              f"`REGIMES['rlow'] = {regimes!r}`."]
     write_json(os.path.join(args.results, "pilot_choice.json"), regimes)
     return write_results(args, "DP pilot: the low-data regime per task", notes, table, records)
-
-
-def choose_training_steps(rates: dict[int, list[float]], tolerance: float = 0.05) -> int:
-    """The Meta-World pilot's rule: the fewest training steps whose mean success over the tasks is within
-    ``tolerance`` of the best step count's ({steps: [success per task]})."""
-    means = {steps: float(np.mean(r)) for steps, r in rates.items()}
-    best = max(means.values())
-    return min(steps for steps, m in means.items() if m >= best - tolerance - 1e-12)
-
-
-def metaworld_pilot_table(args: MetaWorldPilotArgs) -> str:
-    """Meta-World's DP pilot: per task, DP's success at each pilot checkpoint, the chosen T and the measured rates
-    the budget rules need; writes ``<results>/metaworld-pilot.md`` / ``.json``."""
-    camp = campaign(args)
-    dp = Column("DP", "state", DP)
-    seed = args.seeds[0]
-    pilot = METAWORLD_PILOT if args.budget == "metaworld" else {}
-    steps = METAWORLD_PILOT_STEPS if args.budget == "metaworld" else (6, 12)  # smoke: its two checkpoints
-    rates: dict[int, list[float]] = {}
-    rows, records, costs = [], [], []
-    for task in tqdm(args.tasks, desc="metaworld pilot", unit="task", disable=not args.progress):
-        ev = camp.evaluate(task, dp, seed, pilot, periodic=Periodic(eval_episodes(args), EXTERNAL_EVAL_SEED,
-                                                                    tuple(steps[:-1])))
-        if ev is None:
-            rows.append([task, *(["–"] * len(steps))])
-            continue
-        records.append(_table_record(camp, task, dp, seed, pilot, ev))
-        by_step = {c["step"]: c["success_rate"] for c in ev["periodic"]["checkpoints"]}
-        by_step[int(camp.record(task, dp, seed, pilot)["checkpoint_step"])] = ev["success_rate"]
-        for n in steps:
-            if n in by_step:
-                rates.setdefault(n, []).append(by_step[n])
-        rows.append([task, *(f"{100 * by_step[n]:.0f}" if n in by_step else "–" for n in steps)])
-        training = camp.record(task, dp, seed, pilot).get("training") or {}
-        cores = training.get("cpu_cores") or 2
-        per_eval = [ev["eval_s"] * (ev.get("cpu_cores") or 2)] + [
-            c["eval_s"] * (c.get("cpu_cores") or 2) for c in ev["periodic"]["checkpoints"]]
-        costs.append({"task": task, "train_cpu_s_per_step": (training.get("wall_time_s") or 0) * cores
-                      / max(training.get("steps") or 1, 1),
-                      "eval_cpu_s_per_100_episodes": float(np.median(per_eval)) * 100 / eval_episodes(args)})
-    complete = bool(rates) and all(len(r) == len(args.tasks) for r in rates.values())
-    chosen = choose_training_steps(rates) if complete else None
-    rows.append(["mean", *(f"{100 * np.mean(rates[n]):.1f}" if n in rates else "–" for n in steps)])
-    table = markdown_table(["Task", *(f"DP @ {n} steps (%)" for n in steps)], rows)
-    notes = [f"DP only (one stride), seed {seed}, one 8000-step run per task; each checkpoint evaluated on "
-             f"{eval_episodes(args)} episodes (initial-state seeds {EXTERNAL_EVAL_SEED + 1000 * seed}...).",
-             "Rule: T = the fewest steps whose mean success over the tasks is within 5 points of the best."
-             + (f" **T = {chosen}**." if chosen else " Not all checkpoints evaluated yet."),
-             "Measured costs (CPU-seconds): " + "; ".join(
-                 f"{c['task']}: training {c['train_cpu_s_per_step']:.2f} s/step, evaluation "
-                 f"{c['eval_cpu_s_per_100_episodes']:.0f} s per 100 episodes" for c in costs)]
-    write_json(os.path.join(args.results, "metaworld-pilot_choice.json"),
-               {"T": chosen, "rates": {str(k): v for k, v in rates.items()}, "costs": costs})
-    return write_results(args, "Meta-World DP pilot: success by training length", notes, table, records)
 
 
 COLUMNS = {"main": main_columns, "ablation": lambda args: [Column(label, "state", c) for label, c in ABLATION],
@@ -934,7 +873,8 @@ def campaign_table(args: "CampaignArgs") -> str:
     k, n = args.shard
     if not 0 <= k < n:
         raise ValueError(f"shard: expected K N with 0 <= K < N, got {k} {n}")
-    until = parse_until(args.until)
+    parse_until(args.until)  # a bad --until fails before any work
+
     def run_of(job: Job) -> str:
         return camp.run_config(job.task, job.col, job.seed, dict(job.changes)).out_dir()
 
@@ -942,36 +882,7 @@ def campaign_table(args: "CampaignArgs") -> str:
     costs = CostModel(args.records, args.runs).estimate(camp, jobs)
     if args.plan:
         return write_plan(args, costs)
-    known = [c["seconds"] for c in costs if c["seconds"]]
-    guess = float(np.median(known)) if known else 1.0  # a job nothing measured yet
-    deadline = Deadline(until, cpu_cores(), guess)
-    # the bar counts estimated seconds of work (recorded jobs cost 0), so its ETA is the measured rate at which
-    # the estimate is worked off: it corrects itself as runs finish faster or slower than their records said
-    bar = tqdm(total=round(sum(guess if c["seconds"] is None else c["seconds"] for c in costs)), desc="campaign",
-               unit="s", disable=not args.progress, dynamic_ncols=True,
-               bar_format="{l_bar}{bar}| {percentage:.0f}% of the estimated work [{elapsed}<{remaining}] {postfix}")
-    for i, c in enumerate(costs):
-        task, col, seed, changes = c["job"]
-        label = f"{i + 1}/{len(costs)}: {task} seed {seed} {col.label} {changes_text(dict(changes))}"
-        bar.set_postfix_str(label)
-        if not deadline.admits(CostModel.refresh(args.records, args.runs, camp, c), run_of(c["job"])):
-            bar.update(round(guess if c["seconds"] is None else c["seconds"]))
-            estimate = "unmeasured" if c["seconds"] is None else f"{c['seconds'] / deadline.cores:.0f} s"
-            tqdm.write(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: skipped, estimated {estimate}, "
-                       f"{max(deadline.seconds_left(), 0):.0f} s left before --until {args.until}")
-            continue
-        t0 = time.perf_counter()
-        try:
-            evaluation = camp.evaluate(task, col, seed, dict(changes))
-        except RunLockedError as e:  # another campaign process (a shard started over it) works on this run
-            bar.update(round(guess if c["seconds"] is None else c["seconds"]))
-            tqdm.write(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: skipped, {e}")
-            continue
-        bar.update(round(guess if c["seconds"] is None else c["seconds"]))
-        if not args.progress and not c["done"] and evaluation is not None:  # a background run's log: a line a job
-            print(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: "
-                  f"{100 * evaluation['success_rate']:.0f} % in {time.perf_counter() - t0:.0f} s", flush=True)
-    bar.close()
+    work_off(camp, costs, run_of, until=args.until, progress=args.progress)
     if n > 1 or not args.tables:  # the other shards may still run (or tables not asked for): what is left
         return write_plan(args, CostModel(args.records, args.runs).estimate(camp, jobs))
     paths, built = [], []
@@ -1021,7 +932,7 @@ def campaign_table(args: "CampaignArgs") -> str:
 
 BUILDERS = {"main": main_table, "ablation": ablation_table, "execution": execution_table,
             "thresholds": thresholds_table, "hparams": hparams_table, "pilot": pilot_table,
-            "budget": budget_table, "campaign": campaign_table, "metaworld-pilot": metaworld_pilot_table}
+            "budget": budget_table, "campaign": campaign_table}
 
 
 

@@ -4,8 +4,9 @@
 - ``evaluate``: ``evaluate_run`` (with / without entropy guidance, traces, video);
 - ``calibrate``: ``calibrate_run`` (thresholds from held-out demos or rollouts);
 - ``store``: locate and load a run, its stored inference settings and held-out data;
-- ``budgets``: the budgets and demo regimes, and the run config of a (task, observation type, changes, seed);
-- ``campaign``: many evaluations kept as JSON records (``Campaign``, ``Column``, cost model, scheduling, shards);
-- ``report``: cells, tables and figures from those records (intervals, paired tests, cost);
-- ``tables``: the paper's tables and the whole campaign (``build(args)``; ``experiments.paper`` parses its flags).
+- ``records``: a run record's network fingerprint, superseding and checks;
+- ``external``: an external task's run (``metaworld:<task>``): demos and closed-loop evaluation through its bridge;
+- ``lock``, ``cli``: one process per run dir; the command-line plumbing of ``experiments/``.
+
+Campaigns of many runs (budgets, records, tables) are the stage above: ``hipolicy_jax.campaigns``.
 """

@@ -1,0 +1,54 @@
+"""The Meta-World benchmark (results/metaworld/PROTOCOL.md): ``python -m experiments.metaworld TABLE``.
+
+Tables (sub-commands), each training with ``hipolicy_jax.runs.train`` on scripted-expert demos that the bridge
+collects in its own venv (``bash scripts/setup_metaworld.sh``), and evaluating through the project's policy server
+with the bridge's env side (``metaworld_bridge.evaluate``, openpi's client):
+
+- ``pilot``: DP (state, seed 0) trained 8000 steps on basketball and assembly, checkpoints at 1000 / 2000 / 4000 /
+  8000 evaluated on 100 episodes; chooses the training length T → ``results/metaworld/pilot.md``.
+- ``main``: DP, DP+HiPolicy (state) and DP3, DP3+HiPolicy (512-point clouds), 3 seeds × 100 episodes per task, in the
+  protocol's order, then ``results/metaworld/main.md`` / ``.png`` / ``.json`` from the records: success with paired
+  comparisons, and DP3's metric (mean of the 5 best of 10 periodic 20-episode evaluations) beside DP3's published
+  numbers. ``--until HH:MM`` starts only the jobs estimated to end before then; ``--plan`` writes what is left;
+  ``--from-records`` only rebuilds the table.
+
+Runs go to ``--runs/metaworld/metaworld_<task>/<obs>/<variant>/seed<k>``, records (committed) to
+``--records/metaworld/...``; a campaign continues where its records end.
+
+    python -m experiments.metaworld pilot
+    python -m experiments.metaworld main --until 18:00
+    python -m experiments.metaworld main --from-records
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import tyro
+
+from hipolicy_jax.campaigns.metaworld import SUBCOMMANDS, MetaWorldArgs, build
+from hipolicy_jax.runs.cli import enable_compilation_cache
+
+
+def parse_args(argv: list[str] | None = None) -> MetaWorldArgs:
+    """Parse ``TABLE [--flags]`` into the table's args dataclass."""
+    return tyro.extras.subcommand_cli_from_dict(SUBCOMMANDS, args=argv, description=__doc__)
+
+
+def main(args: MetaWorldArgs) -> str:
+    """Build one table and print it; returns the path of its markdown file."""
+    t0 = time.perf_counter()
+    path = build(args)
+    with open(path) as f:
+        print(f.read())
+    print(f"[metaworld] {type(args).TABLE}: {time.perf_counter() - t0:.0f}s -> {path}")
+    return path
+
+
+if __name__ == "__main__":
+    enable_compilation_cache()
+    try:
+        main(parse_args(sys.argv[1:]))
+    except (ValueError, FileNotFoundError) as e:
+        raise SystemExit(f"error: {e}")

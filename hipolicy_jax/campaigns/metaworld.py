@@ -1,0 +1,291 @@
+"""The Meta-World benchmark (``results/metaworld/PROTOCOL.md``): its DP pilot, its campaign and its table, built on the
+MJX campaign's machinery (``campaign``, ``budgets``, ``report``, ``tables``) with the runs' external evaluation
+(``runs.external``: the policy served here, the episodes run by ``metaworld_bridge`` in its own venv).
+
+- ``pilot``: DP (state, seed 0) trained 8000 steps on the protocol's first two tasks, checkpoints at 1000 / 2000 /
+  4000 / 8000 evaluated; chooses the training length T (``choose_training_steps``).
+- ``main``: the four columns (DP, DP+HiPolicy on state; DP3, DP3+HiPolicy on point clouds) on the protocol's tasks,
+  run in the protocol's order (state before point clouds, task by task, DP first, seeds 0, 1, 2) under a
+  ``--until`` deadline, then the table rebuilt from the records: success with paired comparisons, and DP3's metric
+  (mean of the 5 best periodic evaluations) beside DP3's published numbers. ``--plan`` writes what is left.
+
+``experiments.metaworld`` parses the flags of each.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import ClassVar, Literal
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from hipolicy_jax.campaigns.budgets import (BUDGETS, DP, METAWORLD_PILOT, METAWORLD_PILOT_STEPS,
+                                            METAWORLD_POINTCLOUD_TASKS, METAWORLD_STATE_TASKS, METAWORLD_STEPS)
+from hipolicy_jax.campaigns.campaign import EXTERNAL_EVAL_SEED, Column, CostModel, Job, Periodic, work_off
+from hipolicy_jax.campaigns.report import markdown_table
+from hipolicy_jax.campaigns.tables import (PAIRED_NOTE, PaperArgs, table_record, campaign, demo_steps,
+                                           eval_episodes, grouped_rows, success_by_task_figure, write_results)
+from hipolicy_jax.runs.store import read_json, write_json
+
+PROTOCOL_FILE = "results/metaworld/PROTOCOL.md"
+# The protocol's tasks in its order (round robin over DP3's groups), with their DP3 group.
+TASKS: tuple[tuple[str, str], ...] = (
+    ("basketball", "medium"), ("assembly", "hard"), ("shelf-place", "very hard"), ("bin-picking", "medium"),
+    ("hand-insert", "hard"), ("stick-push", "very hard"), ("coffee-pull", "medium"), ("pick-out-of-hole", "hard"),
+    ("pick-place-wall", "very hard"), ("coffee-push", "medium"), ("pick-place", "hard"), ("hammer", "medium"),
+    ("push", "hard"), ("push-wall", "medium"), ("sweep", "medium"), ("sweep-into", "medium"))
+GROUPS = ("medium", "hard", "very hard")
+COLUMNS = (Column("DP", "state", DP), Column("DP+HiPolicy", "state"), Column("DP3", "pointcloud", DP),
+           Column("DP3+HiPolicy", "pointcloud"))
+
+
+def full_name(task: str) -> str:
+    """``assembly`` → ``metaworld:assembly`` (a full name is kept)."""
+    return task if task.startswith("metaworld:") else f"metaworld:{task}"
+
+
+def protocol_tasks(count: int | None = None) -> tuple[str, ...]:
+    """The first ``count`` of the protocol's tasks (all when None), full names."""
+    return tuple(full_name(t) for t, _ in TASKS[:count])
+
+
+@dataclasses.dataclass(frozen=True)
+class MetaWorldArgs(PaperArgs):
+    COMMAND: ClassVar[str] = "experiments.metaworld"
+    PROTOCOL: ClassVar[str] = PROTOCOL_FILE
+
+    budget: Literal["metaworld", "smoke"] = "metaworld"
+    tasks: tuple[str, ...] = ()  # Meta-World tasks (``assembly`` or ``metaworld:assembly``); default: the protocol's
+    results: str = "results/metaworld"
+
+    def __post_init__(self):
+        object.__setattr__(self, "tasks", tuple(full_name(t) for t in (self.tasks or self.default_tasks())))
+
+    def default_tasks(self) -> tuple[str, ...]:
+        return protocol_tasks()
+
+
+@dataclasses.dataclass(frozen=True)
+class PilotArgs(MetaWorldArgs):
+    """DP-only pilot (results/metaworld/PROTOCOL.md): DP (state, seed 0) trained 8000 steps on the protocol's first
+    two tasks, its checkpoints at 1000 / 2000 / 4000 / 8000 evaluated on 100 episodes; chooses the training length."""
+
+    TABLE: ClassVar[str] = "pilot"
+    seeds: tuple[int, ...] = (0,)
+
+    def default_tasks(self) -> tuple[str, ...]:
+        return protocol_tasks(2)
+
+
+@dataclasses.dataclass(frozen=True)
+class MainArgs(MetaWorldArgs):
+    """The Meta-World table: DP, DP+HiPolicy (state) on the protocol's state tasks and DP3, DP3+HiPolicy (point
+    clouds) on its point-cloud tasks, 3 seeds x 100 episodes through the policy server; DP3's metric beside DP3's
+    published numbers."""
+
+    TABLE: ClassVar[str] = "main"
+    # the point-cloud columns' tasks (default: the first METAWORLD_POINTCLOUD_TASKS of the protocol's order)
+    pointcloud_tasks: tuple[str, ...] | None = None
+    steps: int | None = None  # training steps T (default: the pilot's, budgets.METAWORLD_STEPS)
+    published: str = "results/metaworld/dp3_published.json"  # DP3's Table XVIII
+    until: str = ""  # HH:MM or YYYY-MM-DD HH:MM: start only the jobs estimated to end before it
+    plan: bool = False  # write what is left (results/metaworld/plan.md) and stop
+
+    def default_tasks(self) -> tuple[str, ...]:
+        return protocol_tasks(METAWORLD_STATE_TASKS)
+
+    def resolved_pointcloud_tasks(self) -> tuple[str, ...]:
+        if self.pointcloud_tasks is not None:
+            return tuple(full_name(t) for t in self.pointcloud_tasks)
+        return protocol_tasks(METAWORLD_POINTCLOUD_TASKS or 0)
+
+    def training_steps(self) -> int:
+        """T: ``--steps``, else the pilot's (``budgets.METAWORLD_STEPS``); the smoke budget keeps its own."""
+        if self.budget != "metaworld":
+            return BUDGETS[self.budget].train.num_steps
+        steps = self.steps or METAWORLD_STEPS
+        if steps is None:
+            raise ValueError("steps: the Meta-World training length is not fixed yet; run the pilot first "
+                             "(python -m experiments.metaworld pilot), record its T in results/metaworld/PROTOCOL.md "
+                             "and hipolicy_jax/campaigns/budgets.py METAWORLD_STEPS (or pass --steps)")
+        return steps
+
+
+# ------------------------------------------------------------------------------------------------ pilot
+
+
+def choose_training_steps(rates: dict[int, list[float]], tolerance: float = 0.05) -> int:
+    """The pilot's rule: the fewest training steps whose mean success over the tasks is within ``tolerance`` of the
+    best step count's ({steps: [success per task]})."""
+    means = {steps: float(np.mean(r)) for steps, r in rates.items()}
+    best = max(means.values())
+    return min(steps for steps, m in means.items() if m >= best - tolerance - 1e-12)
+
+
+def pilot_table(args: PilotArgs) -> str:
+    """Per task, DP's success at each pilot checkpoint, the chosen T and the measured rates the budget rules need;
+    writes ``<results>/pilot.md`` / ``.json`` and ``pilot_choice.json``."""
+    camp = campaign(args)
+    dp = Column("DP", "state", DP)
+    seed = args.seeds[0]
+    # its own runs (never a table's): every kept checkpoint at the pilot's interval; smoke: 12 steps, kept at 6, 12
+    pilot = METAWORLD_PILOT if args.budget == "metaworld" else {"train.ckpt_every": 6}
+    steps = METAWORLD_PILOT_STEPS if args.budget == "metaworld" else (6, 12)
+    rates: dict[int, list[float]] = {}
+    rows, records, costs = [], [], []
+    for task in tqdm(args.tasks, desc="metaworld pilot", unit="task", disable=not args.progress):
+        ev = camp.evaluate(task, dp, seed, pilot, periodic=Periodic(eval_episodes(args), EXTERNAL_EVAL_SEED,
+                                                                    tuple(steps[:-1])))
+        if ev is None:
+            rows.append([task, *(["–"] * len(steps))])
+            continue
+        record = camp.record(task, dp, seed, pilot)
+        records.append(table_record(camp, task, dp, seed, pilot, ev))
+        by_step = {c["step"]: c["success_rate"] for c in ev["periodic"]["checkpoints"]}
+        by_step[int(record["checkpoint_step"])] = ev["success_rate"]
+        for n in steps:
+            if n in by_step:
+                rates.setdefault(n, []).append(by_step[n])
+        rows.append([task, *(f"{100 * by_step[n]:.0f}" if n in by_step else "–" for n in steps)])
+        training = record.get("training") or {}
+        per_eval = [ev.get("main_eval_s", ev["eval_s"]) * (ev.get("cpu_cores") or 2)] + [
+            c["eval_s"] * (c.get("cpu_cores") or 2) for c in ev["periodic"]["checkpoints"]]
+        costs.append({"task": task, "train_cpu_s_per_step": (training.get("wall_time_s") or 0)
+                      * (training.get("cpu_cores") or 2) / max(training.get("steps") or 1, 1),
+                      "eval_cpu_s_per_100_episodes": float(np.median(per_eval)) * 100 / eval_episodes(args)})
+    complete = bool(rates) and all(len(r) == len(args.tasks) for r in rates.values())
+    chosen = choose_training_steps(rates) if complete else None
+    rows.append(["mean", *(f"{100 * np.mean(rates[n]):.1f}" if n in rates else "–" for n in steps)])
+    table = markdown_table(["Task", *(f"DP @ {n} steps (%)" for n in steps)], rows)
+    notes = [f"DP only (one stride), seed {seed}, one run per task; each checkpoint evaluated on "
+             f"{eval_episodes(args)} episodes through the policy server (initial-state seeds "
+             f"{EXTERNAL_EVAL_SEED + 1000 * seed}...).",
+             "Rule: T = the fewest steps whose mean success over the tasks is within 5 points of the best."
+             + (f" **T = {chosen}**." if chosen else " Not every checkpoint is evaluated yet."),
+             "Measured costs (CPU-seconds): " + ("; ".join(
+                 f"{c['task']}: training {c['train_cpu_s_per_step']:.2f} s/step, evaluation "
+                 f"{c['eval_cpu_s_per_100_episodes']:.0f} s per 100 episodes" for c in costs) or "–")]
+    os.makedirs(args.results, exist_ok=True)
+    write_json(os.path.join(args.results, "pilot_choice.json"),
+               {"T": chosen, "rates": {str(k): v for k, v in rates.items()}, "costs": costs})
+    return write_results(args, "Meta-World DP pilot: success by training length", notes, table, records)
+
+
+# ------------------------------------------------------------------------------------------------- main
+
+
+def main_jobs(args: MainArgs) -> list[Job]:
+    """The protocol's order: state columns before point clouds; task by task in the protocol's order; DP before
+    DP+HiPolicy; seeds ascending."""
+    steps = args.training_steps()
+    changes = () if steps == BUDGETS[args.budget].train.num_steps else (("train.num_steps", steps),)
+    pc_tasks = set(args.resolved_pointcloud_tasks())
+    jobs = []
+    for obs in ("state", "pointcloud"):
+        for task in args.tasks:
+            if obs == "pointcloud" and task not in pc_tasks:
+                continue
+            for col in (c for c in COLUMNS if c.obs_type == obs):
+                jobs += [Job(task, col, seed, changes) for seed in args.seeds]
+    return jobs
+
+
+def _plan(args: MainArgs, costs: list[dict]) -> str:
+    pending = [c for c in costs if not c["done"]]
+    known = [c["seconds"] for c in pending if c["seconds"] is not None]
+    lines = ["# Meta-World campaign: what is left", "",
+             f"{len(pending)} of {len(costs)} evaluations pending, {sum(c['trains'] for c in pending)} runs to "
+             f"train; estimated {sum(known) / 3600:.1f} CPU-hours for the {len(known)} with a measured rate"
+             + (f" ({len(pending) - len(known)} not yet measured)" if len(known) < len(pending) else "") + ".", "",
+             markdown_table(["Task", "Column", "Seed", "Trains", "Estimated CPU-s"],
+                            [[c["job"].task, c["job"].col.label, str(c["job"].seed), "yes" if c["trains"] else "",
+                              "–" if c["seconds"] is None else f"{c['seconds']:.0f}"] for c in pending])]
+    os.makedirs(args.results, exist_ok=True)
+    path = os.path.join(args.results, "plan.md")
+    with open(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+    return path
+
+
+def published_numbers(path: str) -> dict[str, dict]:
+    """DP3's Table XVIII by bare task name ({} when the file is missing)."""
+    return read_json(path).get("tasks", {}) if os.path.exists(path) else {}
+
+
+def main_table(args: MainArgs) -> str:
+    """Run what is pending (unless ``--from-records``), then write ``<results>/main.md`` / ``.png`` / ``.json``."""
+    camp = campaign(args)
+    jobs = main_jobs(args)
+    if not args.from_records:
+        costs = CostModel(args.records, args.runs).estimate(camp, jobs)
+        if args.plan:
+            return _plan(args, costs)
+        work_off(camp, costs, lambda j: camp.run_config(j.task, j.col, j.seed, dict(j.changes)).out_dir(),
+                 until=args.until, progress=args.progress)
+    reader = campaign(dataclasses.replace(args, from_records=True))
+    records = []
+    for task, col, seed, changes in jobs:
+        ev = reader.evaluate(task, col, seed, dict(changes))
+        if ev is not None:
+            records.append(table_record(reader, task, col, seed, dict(changes), ev))
+    labels = [c.label for c in COLUMNS]
+    group = dict((full_name(t), g) for t, g in TASKS)
+    groups = [(g, [t for t in args.tasks if group.get(t) == g]) for g in GROUPS]
+    groups.append(("other", [t for t in args.tasks if t not in group]))
+    pairs = [("DP+HiPolicy", "DP"), ("DP3+HiPolicy", "DP3")]
+    rows = grouped_rows(args, records, labels, paired=pairs, groups=groups,
+                        extra=lambda t: [group.get(t, "–"), demo_steps(args, t)])
+    table = markdown_table(["Task", "DP3 group", "Demo steps", *labels, *(f"{a} − {b} (points)" for a, b in pairs)],
+                           rows)
+    published = published_numbers(args.published)
+
+    def pub(task: str, key: str) -> str:
+        v = published.get(task.partition(":")[2], {}).get(key)
+        return "–" if v is None else f"{v[0]:g} ± {v[1]:g}"
+
+    def gap(task: str) -> str:
+        from hipolicy_jax.campaigns.report import values
+
+        ours = [v for v in values(records, "dp3_metric", args.seeds, task=task, column="DP3") if np.isfinite(v)]
+        v = published.get(task.partition(":")[2], {}).get("dp3")
+        if not ours or v is None or len(ours) < len(args.seeds):
+            return "–"
+        return f"{100 * np.mean(ours) - v[0]:+.1f}"
+
+    metric_rows = grouped_rows(args, records, labels, metric="dp3_metric", groups=groups,
+                               extra=lambda t: [pub(t, "dp_image"), pub(t, "dp3")])
+    for row in metric_rows:  # the gap column: per task only
+        row.append(gap(row[0]) if row[0].startswith("metaworld:") else "")
+    metric_table = markdown_table(["Task", "published DP (image)", "published DP3", *labels,
+                                   "DP3 − published DP3 (points)"], metric_rows)
+    steps = args.training_steps()
+    notes = [f"Success rate (%) over 100 episodes per seed (initial states {EXTERNAL_EVAL_SEED}+1000·seed+i, the same "
+             f"for every column), step limit 200, through the policy server (`metaworld_bridge.evaluate`, openpi's "
+             f"client); whole-chunk execution, HiPolicy entropy-guided at thresholds from a held-out demo. Training: "
+             f"{steps} steps on 10 demos (one more held out).", PAIRED_NOTE,
+             "Point-cloud columns on " + (", ".join(args.resolved_pointcloud_tasks()) or "no task yet")
+             + " (protocol budget rule 2); '–' where a column has no record."]
+    figure = success_by_task_figure(args, records, labels, "Meta-World")
+    md = write_results(args, "Meta-World: success rate (%)", notes, table, records, figure)
+    with open(md, "a") as f:
+        f.write("\n## DP3's metric beside DP3's published numbers\n\n"
+                "Per seed, the mean of the 5 best of 10 periodic evaluations (each kept checkpoint, every T/10 "
+                "steps, on 20 episodes from initial states 2000000+1000·seed+i), as DP3 reports; mean over seeds with "
+                "its t interval. Published: DP3 (arXiv 2403.03954) Table XVIII, mean ± std over 3 seeds, "
+                "**Meta-World v2 (mujoco-py), image DP, 3000 epochs**: a reference, not a replication target.\n\n"
+                + metric_table + "\n")
+    return md
+
+
+SUBCOMMANDS: dict[str, type] = {"pilot": PilotArgs, "main": MainArgs}
+BUILDERS = {"pilot": pilot_table, "main": main_table}
+
+
+def build(args: MetaWorldArgs) -> str:
+    return BUILDERS[type(args).TABLE](args)
+
+
+__all__ = ["BUILDERS", "COLUMNS", "MainArgs", "PilotArgs", "SUBCOMMANDS", "TASKS", "build", "choose_training_steps",
+           "main_jobs", "main_table", "pilot_table", "protocol_tasks"]
