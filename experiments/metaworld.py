@@ -22,33 +22,11 @@ Runs go to ``--runs/metaworld/metaworld_<task>/<obs>/<variant>/seed<k>``, record
 
 from __future__ import annotations
 
-import sys
-import time
+from hipolicy_jax.campaigns.metaworld import SUBCOMMANDS, build
+from hipolicy_jax.runs.cli import run_table_cli, table_cli
 
-import tyro
-
-from hipolicy_jax.campaigns.metaworld import SUBCOMMANDS, MetaWorldArgs, build
-from hipolicy_jax.runs.cli import enable_compilation_cache
-
-
-def parse_args(argv: list[str] | None = None) -> MetaWorldArgs:
-    """Parse ``TABLE [--flags]`` into the table's args dataclass."""
-    return tyro.extras.subcommand_cli_from_dict(SUBCOMMANDS, args=argv, description=__doc__)
-
-
-def main(args: MetaWorldArgs) -> str:
-    """Build one table and print it; returns the path of its markdown file."""
-    t0 = time.perf_counter()
-    path = build(args)
-    with open(path) as f:
-        print(f.read())
-    print(f"[metaworld] {type(args).TABLE}: {time.perf_counter() - t0:.0f}s -> {path}")
-    return path
-
+# parse_args(argv) -> the table's args; main(args) -> builds and prints it, returns its markdown file's path
+parse_args, main = table_cli(SUBCOMMANDS, build, __doc__, "metaworld")
 
 if __name__ == "__main__":
-    enable_compilation_cache()
-    try:
-        main(parse_args(sys.argv[1:]))
-    except (ValueError, FileNotFoundError) as e:
-        raise SystemExit(f"error: {e}")
+    run_table_cli(parse_args, main)

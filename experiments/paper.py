@@ -22,7 +22,7 @@ Runs go to ``--runs/<budget>/<task>/<obs>/<variant>/seed<k>`` and are shared bet
 existing finished run is reused and an unfinished one resumed. Every evaluation is kept in the run's record,
 ``--records/<budget>/<task>/<obs>/<variant>/seed<k>.json`` (committed: configs, calibration, per-episode outcomes),
 so ``--from-records`` rebuilds a table from git alone and a campaign continues on a new machine without retraining
-what is recorded. Outputs: ``--results/<table>.md`` (mean and 95 % bootstrap interval over seeds × episodes, paired
+what is recorded. Outputs: ``--results/<table>.md`` (mean over seeds with its 95 % t interval over seeds, paired
 comparisons, the command, seeds and cost at the top), ``<table>.png`` and ``<table>.json`` (every record).
 The protocol of the campaign these tables belong to is ``results/PROTOCOL.md``.
 
@@ -34,33 +34,11 @@ The protocol of the campaign these tables belong to is ``results/PROTOCOL.md``.
 
 from __future__ import annotations
 
-import sys
-import time
+from hipolicy_jax.campaigns.tables import SUBCOMMANDS, build
+from hipolicy_jax.runs.cli import run_table_cli, table_cli
 
-import tyro
-
-from hipolicy_jax.runs.cli import enable_compilation_cache
-from hipolicy_jax.campaigns.tables import SUBCOMMANDS, PaperArgs, build, table_name
-
-
-def parse_args(argv: list[str] | None = None) -> PaperArgs:
-    """Parse ``TABLE [--flags]`` into the table's args dataclass (``hipolicy_jax.campaigns.tables.SUBCOMMANDS``)."""
-    return tyro.extras.subcommand_cli_from_dict(SUBCOMMANDS, args=argv, description=__doc__)
-
-
-def main(args: PaperArgs) -> str:
-    """Build one table and print it; returns the path of its markdown file."""
-    t0 = time.perf_counter()
-    path = build(args)
-    with open(path) as f:
-        print(f.read())
-    print(f"[paper] {table_name(args)}: {time.perf_counter() - t0:.0f}s -> {path}")
-    return path
-
+# parse_args(argv) -> the table's args; main(args) -> builds and prints it, returns its markdown file's path
+parse_args, main = table_cli(SUBCOMMANDS, build, __doc__, "paper")
 
 if __name__ == "__main__":
-    enable_compilation_cache()
-    try:
-        main(parse_args(sys.argv[1:]))
-    except (ValueError, FileNotFoundError) as e:
-        raise SystemExit(f"error: {e}")
+    run_table_cli(parse_args, main)

@@ -1,6 +1,7 @@
 """What the entry points share: the command-line parsing of those that act on a trained run
 (``experiments.evaluate``, ``experiments.calibrate``, ...: their ``--inference.*`` flags default to the run's stored
-settings) and the persistent compilation cache every entry point turns on."""
+settings), of those that build tables (``experiments.paper``, ``experiments.metaworld``: ``table_cli``) and the
+persistent compilation cache every entry point turns on."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import argparse
 import dataclasses
 import os
 import sys
+import time
 from typing import Callable, TypeVar
 
 import jax
@@ -70,5 +72,34 @@ def run_main(cls: type[T], main: Callable[[T], object], description: str | None 
     program with its one-line message instead of a traceback."""
     try:
         main(parse_with_run_inference(cls, argv, description))
+    except (ValueError, FileNotFoundError) as e:
+        raise SystemExit(f"error: {e}")
+
+
+def table_cli(subcommands: dict[str, type], build: Callable[[object], str], description: str | None, label: str
+              ) -> tuple[Callable[[list[str] | None], object], Callable[[object], str]]:
+    """``(parse_args, main)`` of an entry point whose sub-commands build tables: ``parse_args(argv)`` parses
+    ``TABLE [--flags]`` into that table's args dataclass; ``main(args)`` builds it (``build(args)`` → its markdown
+    file), prints the table and returns the file's path."""
+    def parse_args(argv: list[str] | None = None):
+        return tyro.extras.subcommand_cli_from_dict(subcommands, args=argv, description=description)
+
+    def main(args) -> str:
+        t0 = time.perf_counter()
+        path = build(args)
+        with open(path) as f:
+            print(f.read())
+        print(f"[{label}] {time.perf_counter() - t0:.0f}s -> {path}")
+        return path
+
+    return parse_args, main
+
+
+def run_table_cli(parse_args: Callable, main: Callable, argv: list[str] | None = None) -> None:
+    """An entry point's ``__main__``: the compilation cache on, then ``main(parse_args(argv))``; a bad value or a
+    missing file ends the program with its one-line message instead of a traceback."""
+    enable_compilation_cache()
+    try:
+        main(parse_args(sys.argv[1:] if argv is None else argv))
     except (ValueError, FileNotFoundError) as e:
         raise SystemExit(f"error: {e}")
