@@ -91,6 +91,48 @@ def peer_comparison(device: str, results_dir: str = RESULTS_DIR) -> str:
                       table, ""])
 
 
+def serving_note(res: dict) -> str:
+    """The serving benchmark's figures in words, every number from its JSON (``benchmarks.serving``)."""
+    paths = {r["path"]: r for r in res["rows"]}
+    inproc, exported, ws = (paths[k] for k in ("in-process (jit)", "exported program", "websocket round trip"))
+    scaling = {(s["batch"], s["threads"]): s for s in res["batch_scaling"]}
+    biggest = max(b for b, t in scaling if t == 1)
+    big, one_row = scaling[(biggest, 1)], scaling[(1, 1)]
+    one, many, t = res["load_one_client"], res["load"], res["targets"]
+    unbatched = next((r for name, r in res["loads"].items() if r["server"]["max_batch"] == 1), None)
+    pol, inf = res["policy"], res["policy"]["inference"]
+    clients = many["clients"]
+    lines = [
+        f"Machine: {res['cpu_count']}-core {res['cpu_model']}; 1-minute load average "
+        f"{t['load_average'][0][0]:.1f} before the load tests, {t['load_average'][-1][0]:.1f} after the timings. "
+        f"Policy: {pol['task']}, strides {'/'.join(map(str, pol['strides']))}, N = {pol['num_samples']}, "
+        f"{inf['num_steps']} sampler steps, execution {inf['execution']} ({res['policy_source']}). One observation "
+        f"history per request, loopback.",
+        "",
+        f"- **One decision**: in-process {inproc['median_ms']:.1f} ms (median), the exported program "
+        f"{exported['ratio_to_in_process']:.2f}x, the websocket round trip {ws['ratio_to_in_process']:.2f}x "
+        f"({ws['median_ms']:.1f} ms, {ws['server_side_median_ms']:.1f} ms of it in the server's decision): serving "
+        f"adds {ws['median_ms'] - exported['median_ms']:.0f} ms on loopback.",
+        f"- **Batching**: one call of {biggest} rows costs {big['median_ms']:.0f} ms, "
+        f"{big['median_ms'] / one_row['median_ms']:.2f}x one row's, so it decides {big['throughput_x_batch1']:.2f}x "
+        f"the rows/s of batch 1; the decision is compute-bound on {res['cpu_count']} cores.",
+        f"- **Load**: one client {one['requests_per_s']:.2f} requests/s (p50 {one['p50_ms']:.0f} ms); {clients} "
+        f"clients {many['requests_per_s']:.1f} requests/s with batching (mean batch {many['mean_batch']:.2f}), "
+        f"{t['throughput_ratio']:.2f}x one client (median of {len(t['throughput_ratio_by_round'])} rounds; pooled "
+        f"{t['throughput_ratio_pooled']:.2f}x), p50 {many['p50_ms']:.0f} ms, p99 {many['p99_ms']:.0f} ms"
+        + (f"; without batching {unbatched['requests_per_s']:.1f} requests/s, p50 {unbatched['p50_ms']:.0f} ms"
+           if unbatched else "") + ".",
+        f"- Batching buys throughput, not latency, here: the {t['throughput_ratio']:.2f}x is what one batched call "
+        f"buys in compute ({t['best_batch_throughput_x']:.2f}x), and {clients} closed-loop clients wait at least "
+        f"{t['mean_latency_bound_x_p50']:.2f}x one decision (their p50 is "
+        f"{many['p50_ms'] / one['p50_ms']:.2f}x one client's). The benchmark's targets (>= "
+        f"{t['throughput_target']}x requests/s, p99 <= {t['p99_target']}x one client's p50) are "
+        f"{'met' if t['throughput_met'] and t['p99_met'] else 'not met'} on this machine (p99 / p50 "
+        f"{t['p99_over_one_client_p50']:.1f}).",
+    ]
+    return "\n".join(lines)
+
+
 def render(device: str, notes: str = "", results_dir: str = RESULTS_DIR) -> str:
     """Markdown of every ``<name>_<device>.json`` present in ``results_dir``."""
     out = ["## Performance", ""]
@@ -119,6 +161,8 @@ def render(device: str, notes: str = "", results_dir: str = RESULTS_DIR) -> str:
             cheapest = res.get("cheapest_within_3_points")
             out += [res["note"], ""] + ([f"**{cheapest['summary'][0].upper()}{cheapest['summary'][1:]}.**", ""]
                                         if cheapest else [])
+        elif name == "serving" and "load_one_client" in res:
+            out += [serving_note(res), ""]
         elif res.get("note"):
             out += [res["note"], ""]
         out += [res["table_md"], ""]

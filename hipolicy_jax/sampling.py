@@ -19,7 +19,9 @@
 With a ``prefix`` (asynchronous execution's prefix inpainting) the first d actions of every frequency's segment
 are known: after each update of the chain they are overwritten with where a chain ending in them would stand
 (the head's ``renoise``, fresh noise per step), so the last step leaves them equal to the prefix and the free
-actions were denoised around them; the entropy then averages over the free actions only.
+actions were denoised around them; the entropy then averages over the free actions only. The chain's own draws
+do not change (the renoising draws from a key split off each step's), so a row whose ``prefix_valid`` is False is
+exactly the plain sampler's: one compiled program serves decisions with and without committed actions.
 
 Chunk layout (see ``config``): segments in descending-stride order, so stride ``strides[k]`` (frequency index k,
 0 = highest frequency) lives in segment ``M-1-k``.
@@ -99,7 +101,8 @@ def denoise_chain(net, params, cond, key: jax.Array, *, head: GenerativeHead, in
     """One chain of the head's sampler for a batch → normalised chunks (B, horizon, A), from Gaussian noise.
 
     ``known`` (B, horizon, A) normalised actions and ``known_mask`` (B, horizon) bool: inpainting; after every
-    update the masked entries become ``plan.renoise(row, known, fresh noise)``, so they end equal to ``known``.
+    update the masked entries become ``plan.renoise(row, known, fresh noise)``, so they end equal to ``known``;
+    the update draws from the step's key as without ``known``, so unmasked rows are the plain chain's exactly.
 
     ``cond``: the condition (B, M, Dc), or with ``film`` the precomputed FiLM observation halves
     ``{block: (B, K, 2C)}`` (``film_condition``); each step then only adds its step half (one row of ``film_steps``,
@@ -119,11 +122,11 @@ def denoise_chain(net, params, cond, key: jax.Array, *, head: GenerativeHead, in
             out = net.apply(params, x, step, cond, method=net.denoise_film)
         else:
             out = net.apply(params, x, jnp.full((batch,), row.time), cond, method=net.denoise)
+        x = plan.update(row, x, out, k)  # the step's key, as without a prefix: a row without one is the plain chain
         if known is None:
-            return plan.update(row, x, out, k), None
-        k, k_known = jax.random.split(k)
-        x = plan.update(row, x, out, k)
-        target = plan.renoise(row, known, jax.random.normal(k_known, x.shape, x.dtype))
+            return x, None
+        x = jax.lax.optimization_barrier(x)  # the update compiled as without inpainting: unmasked rows bit for bit
+        target = plan.renoise(row, known, jax.random.normal(jax.random.split(k)[1], x.shape, x.dtype))
         return jnp.where(known_mask[..., None], target, x), None
 
     step_keys = jax.random.split(key, plan.table.time.shape[0])
@@ -174,7 +177,11 @@ def sample(params, normalizer, obs: dict[str, jax.Array], key: jax.Array, thresh
     chunks = jax.vmap(chain)(jax.random.split(key, n))  # (N, B, T, A)
     chunks = normalizer.unnormalize("action", jnp.swapaxes(chunks, 0, 1))  # (B, N, T, A)
     if n >= 2:
-        entropy = action_entropy(chunks, inference.entropy_eps, free)
+        entropy = action_entropy(chunks, inference.entropy_eps)
+        if free is not None:  # rows without a prefix: the plain entropy, bit for bit (the barrier keeps XLA from
+            # fusing the two reductions into one that rounds differently)
+            masked = action_entropy(jax.lax.optimization_barrier(chunks), inference.entropy_eps, free)
+            entropy = jnp.where(jnp.all(free, axis=-1), entropy, masked)
     else:
         entropy = jnp.full(chunks.shape[:1], jnp.nan, jnp.float32)
     k = select_frequency(entropy, thresholds, cfg.chunk.num_freqs)

@@ -286,6 +286,24 @@ def test_serving_benchmark(tmp_path):
     assert out["load"]["replies"] == 10 and out["load"]["failures"] == 0  # 2 clients × 5 requests, one round
 
 
+def test_report_serving_section_reads_the_json():
+    """PERFORMANCE.md's serving section: every figure of its prose from the serving JSON (here the committed one)."""
+    from benchmarks import report
+    from benchmarks.common import RESULTS_DIR
+
+    path = os.path.join(RESULTS_DIR, "serving_cpu.json")
+    if not os.path.exists(path):
+        pytest.skip("no committed serving result")
+    res = jsonio.load(path)
+    note, t = report.serving_note(res), res["targets"]
+    assert f"{t['throughput_ratio']:.2f}x one client (median of {len(t['throughput_ratio_by_round'])} rounds" in note
+    assert f"{res['load']['requests_per_s']:.1f} requests/s with batching" in note
+    assert f"decides {t['best_batch_throughput_x']:.2f}x the rows/s of batch 1" in note
+    assert f"compute-bound on {res['cpu_count']} cores" in note and "\n\n- **One decision**" in note
+    section = report.render("cpu", results_dir=RESULTS_DIR).split("### Policy serving")[1]
+    assert note in section and res["table_md"] in section
+
+
 def test_pytorch_comparison_shapes():
     """``--shapes``: dp-lowdim is Diffusion Policy's low-dim U-Net to the parameter; the HiPolicy shape predicts
     T = 24 steps of A = 14 with and without fusion (fusion only adds parameters)."""

@@ -1,10 +1,13 @@
 """Deployment: the exported policy against the in-process one (in this process and in a process without the model
-code), the websocket server (openpi's wire protocol) and its clients (round trip, default keys, every bad request,
-micro-batching, the API key, openpi's own client in closed loop = in-process, remote evaluation = in-process
-evaluation for two parameter sets), a bounded load test, and the two entry points."""
+code), the exported program's committed-prefix inputs (an invalid prefix decides exactly as none, a valid one is
+inpainted; an old artifact is refused), the websocket server (openpi's wire protocol) and its clients (round trip,
+default keys, every bad request, micro-batching, the API key, openpi's own client in closed loop = in-process,
+remote evaluation = in-process evaluation for two parameter sets and under delay d = 2 with remote inpainting), a
+bounded load test, and the two entry points."""
 
 import contextlib
 import copy
+import dataclasses
 import json
 import os
 import re
@@ -22,6 +25,7 @@ import jax.numpy as jnp
 import msgpack
 import numpy as np
 import pytest
+import shutil
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
@@ -86,6 +90,8 @@ def test_export_round_trip_matches_in_process(exported):
     assert str(env.reset(jax.random.key(0)).obs["state"].dtype) == meta["obs"]["state"]["dtype"]
     assert meta["strides"] == [1, 2, 3] and meta["action_dim"] == 4 and meta["num_samples"] == 4
     assert meta["thresholds_source"] == "calibration.json" and len(meta["thresholds"]) == 4
+    assert meta["version"] == 2 and meta["inputs"]["prefix"] == ["B", 0, 4]  # no inpainting: an empty prefix
+    assert meta["inputs"]["prefix_valid"] == ["B"] and meta["inputs"]["obs"] == {"state": ["B", 7, env.state_dim]}
     loaded = ExportedBackend(directory)
     assert loaded.metadata["obs"] == meta["obs"] and loaded.metadata["platforms"] == ["cpu"]
     for batch in (1, 3):  # one artifact, any batch size
@@ -114,7 +120,9 @@ def test_export_loads_without_the_model_code(exported, tmp_path):
         z = np.load(d + "/params.npz")
         leaves = [z[n] for n in sorted(z.files)]
         x = np.load({str(tmp_path / "in.npz")!r})
-        out = program.call(leaves, {{"state": x["state"]}}, x["keys"])
+        batch = x["keys"].shape[0]
+        out = program.call(leaves, {{"state": x["state"]}}, x["keys"], np.zeros((batch, 0, 4), np.float32),
+                           np.zeros((batch,), bool))
         np.savez({str(tmp_path / "out.npz")!r}, **{{k: np.asarray(v) for k, v in out.items()}})
     """)
     subprocess.run([sys.executable, "-c", script], check=True, timeout=300,
@@ -288,10 +296,10 @@ class _Flaky(PolicyBackend):
     def __init__(self, inner):
         self.inner, self.metadata, self.fail = inner, inner.metadata, False
 
-    def decide(self, obs, key_data):
+    def decide(self, obs, key_data, *prefix):
         if self.fail:
             raise RuntimeError("the accelerator fell over")
-        return self.inner.decide(obs, key_data)
+        return self.inner.decide(obs, key_data, *prefix)
 
 
 def test_internal_error_sends_its_line_and_closes_with_1011(exported):
@@ -600,17 +608,101 @@ def test_two_workers_decide_two_batches(exported):
         srv.stop()
 
 
-def test_serving_refuses_remote_inpainting(exported):
-    backend, _ = exported
+# --------------------------------------------------------------------------------------- remote inpainting
+INPAINT = dict(delay=2, handover="inpaint")
 
-    class Inpainting(_Flaky):
-        pass
 
-    b = Inpainting(backend)
-    b.metadata = {**backend.metadata, "inference": {**backend.metadata["inference"], "delay": 1,
-                                                     "handover": "inpaint"}}
-    with pytest.raises(ValueError, match="inference.handover: prefix inpainting runs inside the sampler"):
-        PolicyServer(b, ServerConfig(port=0))
+@pytest.fixture(scope="module")
+def inpaint_exported(run_dir, tmp_path_factory):
+    """The run's policy under delay d = 2 with the inpainting hand-over, in process and exported."""
+    inference = dataclasses.replace(run_inference(load_run(run_dir)), **INPAINT)
+    backend = InProcessBackend.from_run(run_dir, inference)
+    directory = str(tmp_path_factory.mktemp("export_inpaint") / "policy")
+    export_backend(backend, directory)
+    return backend, directory
+
+
+def test_exported_prefix_inputs(exported, inpaint_exported):
+    """The exported program's prefix inputs: a row whose prefix_valid is False is exactly the decision without a
+    prefix (the plain export's), a valid row's chunks start on the committed actions in every sample and at every
+    frequency, and in-process = exported with prefixes too."""
+    backend, directory = inpaint_exported
+    loaded, plain = ExportedBackend(directory), ExportedBackend(exported[1])
+    meta = loaded.metadata
+    assert meta["inputs"]["prefix"] == ["B", 2, 4] and meta["inference"]["handover"] == "inpaint"
+    obs, keys = _obs(meta, 4, seed=12), _keys(4, seed=12)
+    prefix = np.random.default_rng(12).uniform(-1, 1, (4, 2, 4)).astype(np.float32)
+    valid = np.array([True, False, True, False])
+    out, ref = loaded.decide(obs, keys, prefix, valid), plain.decide(obs, keys)
+    for k in ref:  # not valid: the no-prefix decision, bit for bit
+        np.testing.assert_array_equal(out[k][~valid], ref[k][~valid], err_msg=k)
+        np.testing.assert_array_equal(loaded.decide(obs, keys)[k], ref[k], err_msg=k)  # no prefix given: none valid
+    segments = out["chunks"].reshape(4, 4, 3, 8, 4)  # (B, N, M, L_c, A)
+    np.testing.assert_allclose(segments[valid][:, :, :, :2], np.broadcast_to(prefix[valid][:, None, None],
+                                                                          (2, 4, 3, 2, 4)), atol=1e-5)
+    np.testing.assert_allclose(out["actions"][valid][:, :2], prefix[valid], atol=1e-5)
+    assert np.abs(out["actions"][valid][:, 2:] - ref["actions"][valid][:, 2:]).max() > 1e-3  # the rest re-sampled
+    in_process = backend.decide(obs, keys, prefix, valid)
+    for k in ref:
+        np.testing.assert_allclose(out[k], in_process[k], atol=1e-5, err_msg=k)
+    with pytest.raises(ValueError, match=r"prefix, prefix_valid: expected shapes \(4, 2, 4\) and \(4,\)"):
+        loaded.decide(obs, keys, prefix[:, :1], valid)
+
+
+def test_old_artifact_version_is_refused(exported, tmp_path):
+    """A manifest of version 1 (its program takes no prefix) is refused, naming the file and asking to re-export."""
+    old = tmp_path / "old"
+    shutil.copytree(exported[1], old)
+    manifest = json.loads((old / "manifest.json").read_text())
+    (old / "manifest.json").write_text(json.dumps({**manifest, "version": 1}))
+    with pytest.raises(ValueError, match=re.escape(f"export: {old / 'manifest.json'} is manifest version 1, this "
+                                                   f"code reads version 2") + r".*re-export the policy"):
+        ExportedBackend(str(old))
+
+
+class _Recording(_Flaky):
+    """A backend that records the prefix_valid of every call."""
+
+    def __init__(self, inner):
+        super().__init__(inner)
+        self.valid = []
+
+    def decide(self, obs, key_data, *prefix):
+        if prefix:  # the server's calls (warm-up passes none)
+            self.valid.append(np.asarray(prefix[1]).copy())
+        return super().decide(obs, key_data, *prefix)
+
+
+def test_remote_inpainting_matches_in_process(run_dir, inpaint_exported):
+    """Delay d = 2 with the inpainting hand-over through the server (exported program, one connection per episode,
+    batched decisions): each connection's committed actions go into the batched decision as its prefix, and the
+    MJX evaluation reproduces the in-process one on the same keys: successes, steps, strides, entropies and the
+    joint positions of every control step."""
+    _, directory = inpaint_exported
+    run = load_run(run_dir)
+    inference = dataclasses.replace(run_inference(run), **INPAINT)
+    thresholds, _ = calibration.resolve_thresholds(inference, 3, calibration.read_calibration(run_dir))
+    backend = _Recording(ExportedBackend(directory))
+    srv = PolicyServer(backend, ServerConfig(port=0, max_batch=4, batch_window_ms=500), log=lambda msg: None)
+    srv.start_in_thread()
+    try:
+        with PolicyClient(_url(srv)) as client:
+            meta = client.metadata()
+            remote_evaluator = RemoteEvaluator(meta, max_steps=24)
+        assert meta["server"]["delay"] == 2 and meta["inference"]["handover"] == "inpaint"
+        backend.valid.clear()  # the warm-up's calls
+        remote, remote_rec = remote_evaluator.rollout(_url(srv), 3, eval_key(0))
+    finally:
+        srv.stop()
+    local, local_rec = make_evaluator(run, inference, max_steps=24).rollout(
+        run.policy.params, run.policy.normalizer, 3, eval_key(0), thresholds)
+    for field in ("success", "steps", "stride", "valid", "start", "executed"):
+        np.testing.assert_array_equal(np.asarray(getattr(remote, field)), np.asarray(getattr(local, field)), field)
+    np.testing.assert_allclose(np.asarray(remote.entropy), np.asarray(local.entropy), atol=1e-4)
+    np.testing.assert_allclose(np.asarray(remote_rec.qpos), np.asarray(local_rec.qpos), atol=1e-4)
+    # each episode's first decision has nothing committed, every later one inpaints its connection's d actions
+    assert [v[:3].tolist() for v in backend.valid] == [[False] * 3] + [[True] * 3] * (len(backend.valid) - 1)
+    assert len(backend.valid) >= 3 and np.asarray(local.executed).max() == 6  # L_c − d actions per decision
 
 
 def _free_port() -> int:

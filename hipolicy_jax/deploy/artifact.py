@@ -1,6 +1,10 @@
 """The exported-policy directory: ``policy.jaxexport`` (the serialised ``jax.export`` program), ``params.npz`` (its
 flat parameter leaves: network variables, normaliser, thresholds) and ``manifest.json`` (``backend.make_metadata``
-plus the file format). Reading it needs jax and numpy only, not the model code."""
+plus the file format). Reading it needs jax and numpy only, not the model code.
+
+``MANIFEST_VERSION`` is the program's calling convention: version 2 takes the committed prefix
+(``prefix (B, P, A)``, ``prefix_valid (B,)``, the manifest's ``inputs``) after the observations and keys; a
+version-1 artifact (no prefix) is refused with a request to re-export it."""
 
 from __future__ import annotations
 
@@ -15,6 +19,7 @@ from hipolicy_jax import jsonio
 PROGRAM_FILE = "policy.jaxexport"
 PARAMS_FILE = "params.npz"
 MANIFEST_FILE = "manifest.json"
+MANIFEST_VERSION = 2  # 2: the program takes the committed prefix (remote inpainting); 1: observations and keys only
 
 
 def save_artifact(directory: str, exported: jax_export.Exported, leaves: list, manifest: dict) -> dict:
@@ -48,6 +53,10 @@ def load_artifact(directory: str) -> tuple[dict, jax_export.Exported, list[np.nd
     if manifest.get("format") != "hipolicy_jax.policy":
         raise ValueError(f"export: {paths[MANIFEST_FILE]} is not a hipolicy_jax policy manifest "
                          f"(format {manifest.get('format')!r})")
+    if manifest.get("version") != MANIFEST_VERSION:
+        raise ValueError(f"export: {paths[MANIFEST_FILE]} is manifest version {manifest.get('version')!r}, this code "
+                         f"reads version {MANIFEST_VERSION} (its program also takes the committed prefix); re-export "
+                         f"the policy with python -m experiments.export --checkpoint RUN_DIR --out {directory}")
     try:
         with open(paths[PROGRAM_FILE], "rb") as f:
             exported = jax_export.deserialize(bytearray(f.read()))
@@ -65,4 +74,4 @@ def load_artifact(directory: str) -> tuple[dict, jax_export.Exported, list[np.nd
     return manifest, exported, leaves
 
 
-__all__ = ["MANIFEST_FILE", "PARAMS_FILE", "PROGRAM_FILE", "load_artifact", "save_artifact"]
+__all__ = ["MANIFEST_FILE", "MANIFEST_VERSION", "PARAMS_FILE", "PROGRAM_FILE", "load_artifact", "save_artifact"]

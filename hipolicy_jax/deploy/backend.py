@@ -3,14 +3,19 @@
 A backend answers a batch of observation histories with the sampler's decisions — the same ``Decision`` the
 evaluator's execution strategies read (``evaluation.policy.make_decision_fn``), vmapped over the batch::
 
-    decide(obs {key: (B, obs_span, ...)}, key_data (B, 2) uint32) -> {
+    decide(obs {key: (B, obs_span, ...)}, key_data (B, 2) uint32, prefix (B, P, A) float32 = zeros,
+           prefix_valid (B,) bool = False) -> {
         "actions": (B, L_c, A) float32   sample 0's chunk at the selected frequency (unnormalised),
         "stride": (B,) int32, "freq_index": (B,) int32, "entropy": (B,) float32 (NaN when N = 1),
         "chunks": (B, N, M·L_c, A) float32  all N samples at every frequency}
 
 ``obs`` holds the raw control-rate history of every observation key the policy reads (oldest first, the last frame
 current; pad an episode's start by repeating its first frame), ``key_data`` one raw threefry PRNG key per row
-(``jax.random.key_data``): the decision is a deterministic function of it. Two backends:
+(``jax.random.key_data``): the decision is a deterministic function of it. ``prefix``: the P actions a row's
+previous chunk committed (asynchronous execution with ``handover='inpaint'``: P = ``inference.delay``; 0 otherwise,
+``prefix_len``), inpainted into the first P steps of every frequency's segment where ``prefix_valid``; a row whose
+``prefix_valid`` is False is exactly the decision without a prefix, so callers always pass both (the policy
+server does). Two backends:
 
 - ``InProcessBackend``: a trained run's checkpoint, compiled here (``from_run``);
 - ``ExportedBackend``: the ``jax.export`` artifact ``deploy.export`` writes, run without the model code.
@@ -33,13 +38,12 @@ import numpy as np
 from hipolicy_jax import envs as envs_lib
 from hipolicy_jax.checkpoint import config_to_dict
 from hipolicy_jax.config import InferenceConfig
-from hipolicy_jax.deploy.artifact import load_artifact
+from hipolicy_jax.deploy.artifact import MANIFEST_VERSION, load_artifact
 from hipolicy_jax.evaluation import calibration
 from hipolicy_jax.evaluation.policy import PolicyArgs, make_decision_fn
 from hipolicy_jax.models.policy_net import PolicyNet
 from hipolicy_jax.runs.store import load_run, run_inference
 
-MANIFEST_VERSION = 1
 OUTPUT_KEYS = ("actions", "stride", "freq_index", "entropy", "chunks")
 
 
@@ -49,6 +53,12 @@ def obs_spec(task: str, cfg) -> dict[str, dict]:
            else envs_lib.make_for_encoder(task, cfg.encoder))
     return {k: {"shape": [cfg.chunk.obs_span, *env.obs_shapes[k]], "dtype": env.obs_dtypes[k]}
             for k in cfg.encoder.obs_keys}
+
+
+def prefix_len(inference: InferenceConfig) -> int:
+    """P, the committed actions the batched decision inpaints: ``inference.delay`` with ``handover='inpaint'``, else 0
+    (the prefix input is then empty)."""
+    return int(inference.delay) if inference.delay > 0 and inference.handover == "inpaint" else 0
 
 
 def make_metadata(*, task: str, cfg, action_dim: int, inference: InferenceConfig, thresholds,
@@ -61,16 +71,23 @@ def make_metadata(*, task: str, cfg, action_dim: int, inference: InferenceConfig
             "num_samples": int(inference.num_samples), "objective": cfg.objective, "policy": config_to_dict(cfg),
             "inference": dataclasses.asdict(inference.sampler_settings()),
             "thresholds": [float(t) for t in np.asarray(thresholds).tolist()], "thresholds_source": thresholds_source,
+            "inputs": {"obs": {k: ["B", *spec["shape"]] for k, spec in obs.items()}, "key_data": ["B", 2],
+                       "prefix": ["B", prefix_len(inference), action_dim], "prefix_valid": ["B"]},
             "outputs": {"actions": ["B", cfg.chunk.chunk_len, action_dim], "stride": ["B"], "freq_index": ["B"],
                         "entropy": ["B"], "chunks": ["B", inference.num_samples, cfg.chunk.horizon, action_dim]},
             **(extra or {})}
 
 
 def batched_decide(decide_one: Callable) -> Callable:
-    """``decide(args, obs {key: (B, ...)}, key_data (B, 2)) -> {name: (B, ...)}`` from the one-episode decision."""
-    def decide(args, obs, key_data):
+    """``decide(args, obs {key: (B, ...)}, key_data (B, 2), prefix (B, P, A), prefix_valid (B,)) -> {name: (B, ...)}``
+    from the one-episode decision; P = 0 (an empty prefix) decides without one."""
+    def decide(args, obs, key_data, prefix, prefix_valid):
         keys = jax.random.wrap_key_data(key_data)
-        d = jax.vmap(lambda o, k: decide_one(o, k, args))(obs, keys)
+        if prefix.shape[1] == 0:
+            d = jax.vmap(lambda o, k: decide_one(o, k, args))(obs, keys)
+        else:
+            d = jax.vmap(lambda o, k, p, v: decide_one(o, k, args, (p, v)))(
+                obs, keys, prefix.astype(jnp.float32), prefix_valid.astype(bool))
         return {"actions": d.actions.astype(jnp.float32), "stride": d.stride.astype(jnp.int32),
                 "freq_index": d.freq_index.astype(jnp.int32), "entropy": d.entropy.astype(jnp.float32),
                 "chunks": d.chunks.astype(jnp.float32)}
@@ -85,9 +102,18 @@ class PolicyBackend:
     _fn: Callable
     _args: Any
 
-    def decide(self, obs: dict[str, np.ndarray], key_data: np.ndarray) -> dict[str, np.ndarray]:
+    def decide(self, obs: dict[str, np.ndarray], key_data: np.ndarray, prefix: np.ndarray | None = None,
+               prefix_valid: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """One batched decision (module docstring); no ``prefix`` / ``prefix_valid``: none valid."""
+        batch = np.shape(key_data)[0]
+        shape = (batch, *self.metadata["inputs"]["prefix"][1:])
+        prefix = np.zeros(shape, np.float32) if prefix is None else np.asarray(prefix, np.float32)
+        valid = np.zeros((batch,), bool) if prefix_valid is None else np.asarray(prefix_valid, bool)
+        if prefix.shape != shape or valid.shape != (batch,):
+            raise ValueError(f"prefix, prefix_valid: expected shapes {shape} and {(batch,)} (the manifest's inputs), "
+                             f"got {prefix.shape} and {valid.shape}")
         out = self._fn(self._args, {k: jnp.asarray(obs[k]) for k in self.metadata["obs"]},
-                       jnp.asarray(key_data, jnp.uint32))
+                       jnp.asarray(key_data, jnp.uint32), jnp.asarray(prefix), jnp.asarray(valid))
         return {k: np.asarray(v) for k, v in out.items()}
 
     def warmup(self, batch: int = 1) -> float:
@@ -142,5 +168,5 @@ class ExportedBackend(PolicyBackend):
         self.directory = directory
 
 
-__all__ = ["ExportedBackend", "InProcessBackend", "OUTPUT_KEYS", "PolicyBackend", "batched_decide",
-           "make_metadata", "obs_spec", "zeros_obs"]
+__all__ = ["ExportedBackend", "InProcessBackend", "MANIFEST_VERSION", "OUTPUT_KEYS", "PolicyBackend",
+           "batched_decide", "make_metadata", "obs_spec", "prefix_len", "zeros_obs"]

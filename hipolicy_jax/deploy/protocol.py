@@ -23,10 +23,10 @@ str}``; only numeric arrays (bool, int, uint, float) are accepted.
    and in-process episodes are identical (``experiments.serve --seed``, default 0).
 3. The reply (binary frame): ``actions`` (n, A) float32, the actions to execute one per control step: the served
    execution strategy applied to the decision (``chunk``: the selected stride's L_c actions, ``aac``: its first k*,
-   ``te``: one ensembled action, ``delay`` d: L_c − d with the d committed ones first); ``stride``, ``freq_index``
-   (ints), ``entropy`` (float, NaN when N = 1), ``decision`` (n), ``server_timing`` ``{"infer_ms": the batched
-   decision, "queue_ms": waiting for it, "batch": observations decided together}`` and, when asked, ``chunks``
-   (N, M·L_c, A).
+   ``te``: one ensembled action, ``delay`` d: L_c − d with the d committed ones first, the new chunk inpainted on
+   them with ``handover='inpaint'``); ``stride``, ``freq_index`` (ints), ``entropy`` (float, NaN when N = 1),
+   ``decision`` (n), ``server_timing`` ``{"infer_ms": the batched decision, "queue_ms": waiting for it, "batch":
+   observations decided together}`` and, when asked, ``chunks`` (N, M·L_c, A).
 4. A request the server cannot answer gets a TEXT frame with one line naming the problem (openpi's client raises
    on any text frame) and the connection stays open; an internal failure sends its line and closes the connection
    with 1011, as openpi does. ``GET /healthz`` answers 200 over HTTP.

@@ -4,8 +4,11 @@
 - **Connections.** Each connection is one robot (one episode at a time): on connect it gets the manifest, then
   sends observation frames and gets the actions to execute. It carries its decision count (the default PRNG keys,
   ``protocol.decision_key``) and the execution strategy's memory (``te``, ``delay``), both reset by a ``reset``
-  entry. Health (``GET /healthz``) and the API key check (``Authorization: Api-Key <key>``, HTTP 401 at the
-  handshake, before any inference) run in websockets' ``process_request`` hook.
+  entry. Under an inference delay with ``handover='inpaint'`` that memory's committed actions go into the batched
+  decision as the row's prefix (``backend``: ``prefix``, ``prefix_valid``), as in-process rollouts pass them to the
+  sampler; every other row passes an invalid (or empty) prefix, which decides as without one. Health
+  (``GET /healthz``) and the API key check (``Authorization: Api-Key <key>``, HTTP 401 at the handshake, before any
+  inference) run in websockets' ``process_request`` hook.
 - **Micro-batching.** Validated requests go to one queue; whenever a worker is free, a batcher takes the first,
   then keeps collecting until ``max_batch`` are in, every open connection not being decided has one in (with
   ``workers`` > 1: its share of the open connections), or ``batch_window_ms`` has passed since the first, and
@@ -115,18 +118,24 @@ class PolicyServer:
             raise ValueError(f"obs: the policy's observation keys {clash} clash with the protocol's reserved "
                              f"entries {list(protocol.RESERVED)}")
         self.inference = InferenceConfig(**meta["inference"])
-        if self.inference.delay and self.inference.handover == "inpaint":
-            raise ValueError("inference.handover: prefix inpainting runs inside the sampler, in-process only; serve "
-                             "with --inference.handover naive")
         self.strategy = make_execution(self.inference)
         self.chunk = config_from_dict(PolicyConfig, meta["policy"]).chunk
         self.exec_len = self.strategy.exec_len(self.chunk)
         strategy, chunk = self.strategy, self.chunk
         self._execute = jax.jit(lambda d, state: strategy.decide(d, state, chunk))
         self._initial_state = strategy.init(chunk, int(meta["action_dim"]))
+        self._prefix_of = getattr(strategy, "prefix", lambda state: None)
+        committed = self._prefix_of(self._initial_state)
+        want = (0 if committed is None else int(committed[0].shape[0]), int(meta["action_dim"]))
+        if tuple(meta["inputs"]["prefix"][1:]) != want:
+            raise ValueError(f"inputs.prefix: the policy's decision takes a prefix of shape "
+                             f"{meta['inputs']['prefix']}, its execution (delay {self.inference.delay}, handover "
+                             f"{self.inference.handover!r}) commits {want[0]} actions of {want[1]}; re-export it")
+        self._no_prefix = np.zeros(want, np.float32)
         self.metadata = {**meta, "server": {
             "protocol": protocol.PROTOCOL, "reserved": list(protocol.RESERVED), "execution": strategy.name,
-            "delay": int(self.inference.delay), "exec_len": int(self.exec_len), "seed": int(config.seed),
+            "delay": int(self.inference.delay), "handover": self.inference.handover, "exec_len": int(self.exec_len),
+            "seed": int(config.seed),
             "max_batch": int(config.max_batch), "batch_window_ms": float(config.batch_window_ms),
             "workers": int(config.workers),
             "batch_sizes": list(config.batch_sizes), "api_key": bool(config.api_key)}}
@@ -162,6 +171,13 @@ class PolicyServer:
         n = self.exec_len if po.num_actions is None else int(np.clip(int(po.num_actions), 1, self.exec_len))
         return np.asarray(po.actions, np.float32)[:n], state
 
+    def _prefix(self, state) -> tuple[np.ndarray, bool]:
+        """A connection's committed actions (P, A) and whether there are any (P = 0 without inpainting)."""
+        committed = self._prefix_of(state)
+        if committed is None:
+            return self._no_prefix, False
+        return np.asarray(committed[0], np.float32), bool(committed[1])
+
     def _decide_batch(self, items: list[_Pending]) -> list[dict]:
         """Worker thread: one backend call for ``items`` (padded to a compiled size), then each row's execution."""
         started = time.perf_counter()
@@ -171,8 +187,10 @@ class PolicyServer:
         padded = items + [items[-1]] * (self._bucket(rows) - rows)
         keys += [keys[-1]] * (len(padded) - rows)
         obs = {k: np.stack([it.request.obs[k] for it in padded]) for k in self.backend.metadata["obs"]}
+        prefixes = [self._prefix(it.session.state) for it in padded]  # a connection's requests come one at a time
         t0 = time.perf_counter()
-        out = self.backend.decide(obs, np.stack(keys))
+        out = self.backend.decide(obs, np.stack(keys), np.stack([p for p, _ in prefixes]),
+                                  np.array([v for _, v in prefixes], bool))
         infer_ms = 1e3 * (time.perf_counter() - t0)
         replies = []
         for i, it in enumerate(items):
