@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from benchmarks.machine import machine_info
 from hipolicy_jax import jsonio
 from hipolicy_jax.config import PolicyConfig, replace
 from hipolicy_jax.data.normalizer import Normalizer
@@ -298,12 +299,14 @@ def memory_bandwidth_gbs(mbytes: int = 512, repeats: int = 10) -> dict[str, floa
 
 
 def write_results(name: str, payload: dict, out_dir: str | None = None) -> str:
-    """Write ``payload`` (plus device metadata) to ``<out_dir>/<name>_<device>.json``; returns the path."""
+    """Write ``payload`` (plus device metadata and ``machine``: the CPU model, core count, load average and the
+    machine peaks measured in this process, ``benchmarks.machine``) to ``<out_dir>/<name>_<device>.json``; returns
+    the path."""
     out_dir = out_dir or RESULTS_DIR
     os.makedirs(out_dir, exist_ok=True)
     path = os.path.join(out_dir, f"{name}_{device_kind()}.json")
     meta = {"benchmark": name, "device": device_kind(), "device_description": device_description(),
-            "jax_version": jax.__version__, "time": time.strftime("%Y-%m-%dT%H:%M:%S")}
+            "jax_version": jax.__version__, "time": time.strftime("%Y-%m-%dT%H:%M:%S"), "machine": machine_info()}
     with open(path, "w") as f:
         f.write(jsonio.dumps({**meta, **payload}, indent=1))
         f.write("\n")

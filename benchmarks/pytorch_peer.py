@@ -32,7 +32,32 @@ import time
 
 import torch
 from torch import nn
+
+from benchmarks.machine import machine_info
 import torch.nn.functional as F
+
+def torch_peaks(n: int = 2048, mbytes: int = 256, repeats: int = 5) -> dict:
+    """The machine peaks as ``benchmarks.machine.peaks`` measures them, in PyTorch (this script does not import
+    JAX): the best GFLOP/s of an n x n float32 matmul and GB/s of summing an ``mbytes`` MB float32 array."""
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    big = torch.ones(mbytes * 2**20 // 4)
+
+    def best(fn):
+        fn()
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t0)
+        return min(times), statistics.median(times)
+
+    mm, mm_med = best(lambda: torch.mm(a, b))
+    bw, bw_med = best(lambda: big.sum())
+    return {"matmul_f32_gflops": 2.0 * n**3 / mm / 1e9, "matmul_n": n,
+            "matmul_f32_median_gflops": 2.0 * n**3 / mm_med / 1e9,
+            "bandwidth_gbs": big.numel() * 4 / bw / 1e9, "bandwidth_mbytes": mbytes,
+            "bandwidth_median_gbs": big.numel() * 4 / bw_med / 1e9}
+
 
 SHAPES = {  # name -> (strides / segments M, chunk len per segment, action dim, condition dim per segment, fusion)
     "dp-lowdim": (1, 16, 2, 40, False),
@@ -219,6 +244,7 @@ def main(argv=None):
     path = os.path.join(args.out_dir, "pytorch_peer_cpu.json")
     payload = {"benchmark": "pytorch_peer", "torch_version": torch.__version__, "threads": args.threads,
                "cpu_count": os.cpu_count(), "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+               "machine": machine_info(torch_peaks),
                "command": "python -m benchmarks.pytorch_peer " + " ".join(sys.argv[1:] if argv is None else argv),
                "rows": rows}
     with open(path, "w") as f:
