@@ -255,7 +255,7 @@ def test_metaworld_budget_layout():
 
 def test_external_summary_and_dp3_metric():
     from hipolicy_jax.campaigns.campaign import dp3_metric, external_summary
-    from hipolicy_jax.campaigns.tables import choose_training_steps
+    from hipolicy_jax.campaigns.metaworld import choose_training_steps
 
     eps = [{"seed": 1, "success": True, "steps": 60, "decisions": 5, "strides": {"1": 2, "3": 3}, "mean_entropy": 0.5},
            {"seed": 2, "success": False, "steps": 200, "decisions": 25, "strides": {"1": 25}, "mean_entropy": None},
@@ -288,7 +288,7 @@ def test_metaworld_campaign_end_to_end(tmp_path):
     flags = ["--budget", "smoke", "--tasks", "assembly", "--runs", str(tmp_path / "runs"), "--data",
              str(tmp_path / "data"), "--records", str(tmp_path / "rec"), "--results", str(tmp_path / "res"),
              "--episodes", "2", "--no-progress"]
-    md = metaworld(parse_args(["pilot", *flags]))
+    md = metaworld(parse_args(["pilot", *flags, "--pointcloud-train-s-per-step", "3", "--camera-ms-per-frame", "25"]))
     rec = json.loads((tmp_path / "rec" / "smoke" / "metaworld_assembly" / "state" / "dp_ckptevery6" /
                       "seed0.json").read_text())
     (ev,) = rec["evaluations"].values()
@@ -304,7 +304,11 @@ def test_metaworld_campaign_end_to_end(tmp_path):
     assert "python -m experiments.metaworld pilot" in text
     choice = json.loads((tmp_path / "res" / "pilot_choice.json").read_text())
     assert choice["T"] in (6, 12) and choice["costs"][0]["train_cpu_s_per_step"] > 0
-    again = metaworld(parse_args(["pilot", *flags, "--from-records"]))
+    rules = choice["budget_rules"]  # a smoke pilot costs nothing: every task carries both column pairs
+    assert rules["state_tasks"] == 16 and rules["pointcloud_tasks"] == 16 and rules["steps"] == choice["T"]
+    assert "state columns on the first **16** tasks" in text
+    again = metaworld(parse_args(["pilot", *flags, "--pointcloud-train-s-per-step", "3", "--camera-ms-per-frame", "25",
+                                  "--from-records"]))
     assert open(again).read().split("| Task")[1] == text.split("| Task")[1]
 
     # the main table: its own runs (the pilot's are not table runs), the demos reused
@@ -327,3 +331,23 @@ def test_metaworld_campaign_end_to_end(tmp_path):
     assert hip["policy"]["encoder"]["obs_type"] == "pointcloud" and hip["policy"]["chunk"]["strides"] != [1]
     assert metaworld(parse_args(["main", *main_flags, "--from-records"])) == md
     assert open(md).read().split("| Task")[1:] == text.split("| Task")[1:]
+
+
+def test_metaworld_budget_rules_by_hand():
+    from hipolicy_jax.campaigns.metaworld import budget_rules
+
+    # a state network: 0.25 s/step x 1000 + 150 s per 100 episodes x 3 = 700 s; a task: 6 networks = 4200 s
+    # a point-cloud network: 3 s/step x 1000 + 600 x 3 = 4800 s; a task 28800 s
+    r = budget_rules(budget_s=144000, spent_s=4000, steps=1000, state_s_per_step=0.25, state_eval_s_per_100=150,
+                     pc_s_per_step=3.0, pc_eval_s_per_100=600)
+    assert r["state_task_s"] == pytest.approx(4200) and r["pointcloud_task_s"] == pytest.approx(28800)
+    assert r["state_tasks"] == 16  # 16 x 4200 = 67200 <= 0.6 x 140000 = 84000
+    assert r["pointcloud_tasks"] == 2  # (140000 - 67200) // 28800 = 2
+    # tighter: 60 % of what is left fits 12 state tasks
+    r = budget_rules(budget_s=144000, spent_s=4000, steps=1000, state_s_per_step=0.25, state_eval_s_per_100=150,
+                     pc_s_per_step=3.0, pc_eval_s_per_100=600, state_share=12.5 * 4200 / 140000)
+    assert r["state_tasks"] == 12 and r["pointcloud_tasks"] == int((140000 - 12 * 4200) // 28800)
+    # not even 10 tasks: None (the pilot table then tries a smaller T)
+    r = budget_rules(budget_s=50000, spent_s=4000, steps=1000, state_s_per_step=0.25, state_eval_s_per_100=150,
+                     pc_s_per_step=3.0, pc_eval_s_per_100=600)
+    assert r["state_tasks"] is None and r["pointcloud_tasks"] is None

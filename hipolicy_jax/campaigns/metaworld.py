@@ -74,6 +74,12 @@ class PilotArgs(MetaWorldArgs):
 
     TABLE: ClassVar[str] = "pilot"
     seeds: tuple[int, ...] = (0,)
+    # the budget rules' other measurements (PROTOCOL.md "Budget"): a point-cloud train step (CPU-s at batch 64,
+    # `benchmarks.train_step --obs pointcloud --num-points 512`, other jobs paused) and the bridge's point-cloud
+    # camera (ms per frame); given, the pilot table applies rules 1 and 2
+    pointcloud_train_s_per_step: float | None = None
+    camera_ms_per_frame: float | None = None
+    budget_hours: float = 40.0
 
     def default_tasks(self) -> tuple[str, ...]:
         return protocol_tasks(2)
@@ -124,6 +130,24 @@ def choose_training_steps(rates: dict[int, list[float]], tolerance: float = 0.05
     return min(steps for steps, m in means.items() if m >= best - tolerance - 1e-12)
 
 
+def budget_rules(*, budget_s: float, spent_s: float, steps: int, state_s_per_step: float, state_eval_s_per_100: float,
+                 pc_s_per_step: float, pc_eval_s_per_100: float, periodic_episodes: int = 200, seeds: int = 3,
+                 tasks: int = len(TASKS), min_tasks: int = 10, state_share: float = 0.6) -> dict:
+    """The protocol's budget rules 1 and 2 (CPU-seconds): a network costs its training (rate × ``steps``) and its
+    evaluations (100 main + ``periodic_episodes`` episodes); a task's column pair costs 2 × ``seeds`` networks.
+    K: all ``tasks`` when their state columns fit ``state_share`` of what is left after ``spent_s``, else the
+    largest K ≥ ``min_tasks`` that fits (None: none fits, T must drop); P: the point-cloud tasks the rest carries."""
+    left = budget_s - spent_s
+    episodes = (100 + periodic_episodes) / 100
+    state_task = 2 * seeds * (state_s_per_step * steps + state_eval_s_per_100 * episodes)
+    pc_task = 2 * seeds * (pc_s_per_step * steps + pc_eval_s_per_100 * episodes)
+    fits = [k for k in range(min_tasks, tasks + 1) if k * state_task <= state_share * left]
+    k = max(fits) if fits else None
+    p = None if k is None else max(int((left - k * state_task) // pc_task), 0)
+    return {"left_s": left, "state_task_s": state_task, "pointcloud_task_s": pc_task, "state_tasks": k,
+            "pointcloud_tasks": None if p is None else min(p, k), "steps": steps}
+
+
 def pilot_table(args: PilotArgs) -> str:
     """Per task, DP's success at each pilot checkpoint, the chosen T and the measured rates the budget rules need;
     writes ``<results>/pilot.md`` / ``.json`` and ``pilot_choice.json``."""
@@ -157,6 +181,22 @@ def pilot_table(args: PilotArgs) -> str:
                       "eval_cpu_s_per_100_episodes": float(np.median(per_eval)) * 100 / eval_episodes(args)})
     complete = bool(rates) and all(len(r) == len(args.tasks) for r in rates.values())
     chosen = choose_training_steps(rates) if complete else None
+    rules = None
+    if chosen and costs and args.pointcloud_train_s_per_step and args.camera_ms_per_frame:
+        spent = CostModel(args.records, args.runs).spent(args.budget)
+        inputs = {"spent_s": spent["train_s"] + spent["eval_s"],
+                  "state_s_per_step": float(np.median([c["train_cpu_s_per_step"] for c in costs])),
+                  "state_eval_s_per_100": float(np.median([c["eval_cpu_s_per_100_episodes"] for c in costs])),
+                  "pc_s_per_step": args.pointcloud_train_s_per_step}
+        frames_100 = float(np.mean([np.mean(r["steps"]) for r in records])) * 100  # frames per 100 episodes
+        inputs["pc_eval_s_per_100"] = inputs["state_eval_s_per_100"] + frames_100 * args.camera_ms_per_frame / 1000
+        # rule 1: T, or the next smaller pilot candidate while not even 10 tasks' state columns fit
+        for n in sorted((n for n in steps if n <= chosen), reverse=True):
+            rules = budget_rules(budget_s=args.budget_hours * 3600, steps=n, **inputs)
+            if rules["state_tasks"] is not None:
+                break
+        rules["inputs"] = {**inputs, "camera_ms_per_frame": args.camera_ms_per_frame,
+                           "frames_per_100_episodes": frames_100}
     rows.append(["mean", *(f"{100 * np.mean(rates[n]):.1f}" if n in rates else "–" for n in steps)])
     table = markdown_table(["Task", *(f"DP @ {n} steps (%)" for n in steps)], rows)
     notes = [f"DP only (one stride), seed {seed}, one run per task; each checkpoint evaluated on "
@@ -168,8 +208,14 @@ def pilot_table(args: PilotArgs) -> str:
                  f"{c['task']}: training {c['train_cpu_s_per_step']:.2f} s/step, evaluation "
                  f"{c['eval_cpu_s_per_100_episodes']:.0f} s per 100 episodes" for c in costs) or "–")]
     os.makedirs(args.results, exist_ok=True)
+    if rules is not None:
+        notes.append(f"Budget rules ({args.budget_hours:g} CPU-hours; {rules['left_s'] / 3600:.1f} h left after the "
+                     f"pilot): a task's state columns cost {rules['state_task_s'] / 3600:.2f} h, its point-cloud "
+                     f"columns {rules['pointcloud_task_s'] / 3600:.2f} h → state columns on the first "
+                     f"**{rules['state_tasks']}** tasks, point-cloud columns on the first "
+                     f"**{rules['pointcloud_tasks']}**, T = {rules['steps']}.")
     write_json(os.path.join(args.results, "pilot_choice.json"),
-               {"T": chosen, "rates": {str(k): v for k, v in rates.items()}, "costs": costs})
+               {"T": chosen, "rates": {str(k): v for k, v in rates.items()}, "costs": costs, "budget_rules": rules})
     return write_results(args, "Meta-World DP pilot: success by training length", notes, table, records)
 
 
