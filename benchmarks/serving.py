@@ -35,6 +35,7 @@ from benchmarks.common import base_parser, example_obs, latency_stats, markdown_
 from hipolicy_jax import envs
 from hipolicy_jax.data.normalizer import Normalizer
 from hipolicy_jax.deploy.backend import ExportedBackend, InProcessBackend
+from hipolicy_jax.runs.serve import run_backend
 from hipolicy_jax.deploy.client import PolicyClient
 from hipolicy_jax.deploy.export import export_backend
 from hipolicy_jax.deploy.server import ServerConfig
@@ -79,7 +80,7 @@ def cpu_model() -> str:
 def make_backend(run: str) -> tuple[InProcessBackend, str]:
     """The run's policy, else the cpu budget's HiPolicy press_button network freshly initialised."""
     if os.path.isdir(run):
-        return InProcessBackend.from_run(run), os.path.relpath(run)
+        return run_backend(run), os.path.relpath(run)
     budget, env = BUDGETS["cpu"], envs.make("press_button")
     cfg, key = budget.policy, jax.random.key(0)
     params = init_policy_params(cfg, env.action_dim, example_obs(cfg, 1, key, env.state_dim), key)

@@ -14,7 +14,7 @@ from __future__ import annotations
 import dataclasses
 
 from hipolicy_jax.config import InferenceConfig
-from hipolicy_jax.deploy.backend import InProcessBackend
+from hipolicy_jax.runs.serve import run_backend
 from hipolicy_jax.deploy.export import export_backend
 from hipolicy_jax.runs.cli import enable_compilation_cache, run_main
 
@@ -29,7 +29,7 @@ class ExportArgs:
 
 
 def main(args: ExportArgs) -> dict:
-    backend = InProcessBackend.from_run(args.checkpoint, args.inference, args.step)
+    backend = run_backend(args.checkpoint, args.inference, args.step)
     paths = export_backend(backend, args.out, tuple(args.platforms))
     meta = backend.metadata
     print(f"exported the {meta['task']} policy (step {meta['checkpoint_step']}, strides {meta['strides']}, "

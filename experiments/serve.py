@@ -19,7 +19,8 @@ import os
 
 from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.deploy import protocol
-from hipolicy_jax.deploy.backend import ExportedBackend, InProcessBackend
+from hipolicy_jax.deploy.backend import ExportedBackend
+from hipolicy_jax.runs.serve import run_backend
 from hipolicy_jax.deploy.server import API_KEY_ENV, PolicyServer, ServerConfig
 from hipolicy_jax.runs.cli import enable_compilation_cache, run_main
 
@@ -47,7 +48,7 @@ def main(args: ServeArgs) -> None:
                           max_batch=args.max_batch, batch_window_ms=args.batch_window_ms, workers=args.workers,
                           seed=args.seed,
                           api_key=args.api_key or os.environ.get(API_KEY_ENV, ""))
-    backend = ExportedBackend(args.export) if args.export else InProcessBackend.from_run(args.checkpoint,
+    backend = ExportedBackend(args.export) if args.export else run_backend(args.checkpoint,
                                                                                         args.inference, args.step)
     server = PolicyServer(backend, config)
     if not config.api_key and args.host not in ("127.0.0.1", "localhost", "::1"):

@@ -40,6 +40,7 @@ from hipolicy_jax.deploy.client import PolicyClient, PolicyServerError, RemoteEv
 from hipolicy_jax.deploy.export import export_backend
 from hipolicy_jax.deploy.server import API_KEY_ENV, PolicyServer, ServerConfig
 from hipolicy_jax.evaluation import calibration
+from hipolicy_jax.runs.serve import run_backend
 from hipolicy_jax.runs.store import eval_key, load_run, make_evaluator, run_inference
 from hipolicy_jax.runs.train import RunConfig, train
 
@@ -67,7 +68,7 @@ def run_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def exported(run_dir, tmp_path_factory):
-    backend = InProcessBackend.from_run(run_dir)
+    backend = run_backend(run_dir)
     directory = str(tmp_path_factory.mktemp("export") / "policy")
     export_backend(backend, directory)
     return backend, directory
@@ -616,7 +617,7 @@ INPAINT = dict(delay=2, handover="inpaint")
 def inpaint_exported(run_dir, tmp_path_factory):
     """The run's policy under delay d = 2 with the inpainting hand-over, in process and exported."""
     inference = dataclasses.replace(run_inference(load_run(run_dir)), **INPAINT)
-    backend = InProcessBackend.from_run(run_dir, inference)
+    backend = run_backend(run_dir, inference)
     directory = str(tmp_path_factory.mktemp("export_inpaint") / "policy")
     export_backend(backend, directory)
     return backend, directory

@@ -125,10 +125,10 @@ def test_train_pointcloud_policy_on_metaworld_demos(pointcloud_run):
 @pytest.fixture(scope="module")
 def served(pointcloud_run):
     """The trained point-cloud policy behind the project's server on a free port: (url, server)."""
-    from hipolicy_jax.deploy.backend import InProcessBackend
+    from hipolicy_jax.runs.serve import run_backend
     from hipolicy_jax.deploy.server import PolicyServer, ServerConfig
 
-    srv = PolicyServer(InProcessBackend.from_run(pointcloud_run[0]), ServerConfig(port=0, max_batch=2),
+    srv = PolicyServer(run_backend(pointcloud_run[0]), ServerConfig(port=0, max_batch=2),
                        log=lambda msg: None)
     srv.start_in_thread()
     yield f"ws://127.0.0.1:{srv.port}", srv

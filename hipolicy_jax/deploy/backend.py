@@ -17,7 +17,7 @@ previous chunk committed (asynchronous execution with ``handover='inpaint'``: P 
 ``prefix_valid`` is False is exactly the decision without a prefix, so callers always pass both (the policy
 server does). Two backends:
 
-- ``InProcessBackend``: a trained run's checkpoint, compiled here (``from_run``);
+- ``InProcessBackend``: a trained policy compiled here (a run's: ``runs.serve.run_backend``);
 - ``ExportedBackend``: the ``jax.export`` artifact ``deploy.export`` writes, run without the model code.
 
 Both carry ``metadata`` (the manifest: observation keys, shapes and dtypes, strides, chunk length, action dim,
@@ -42,7 +42,6 @@ from hipolicy_jax.deploy.artifact import MANIFEST_VERSION, load_artifact
 from hipolicy_jax.evaluation import calibration
 from hipolicy_jax.evaluation.policy import PolicyArgs, make_decision_fn
 from hipolicy_jax.models.policy_net import PolicyNet
-from hipolicy_jax.runs.store import load_run, run_inference
 
 OUTPUT_KEYS = ("actions", "stride", "freq_index", "entropy", "chunks")
 
@@ -142,19 +141,6 @@ class InProcessBackend(PolicyBackend):
         self.metadata = make_metadata(task=task, cfg=cfg, action_dim=action_dim, inference=inference,
                                       thresholds=th, thresholds_source=thresholds_source,
                                       obs=obs_spec(task, cfg), extra=extra)
-
-    @classmethod
-    def from_run(cls, path: str, inference: InferenceConfig | None = None, step: int | None = None
-                 ) -> "InProcessBackend":
-        """The (EMA) policy of a run dir, with its stored inference settings (or ``inference``) and calibration."""
-        run = load_run(path, step)
-        inference = inference or run_inference(run)
-        calib = calibration.read_calibration(run.run_dir)
-        thresholds, source = calibration.resolve_thresholds(inference, run.policy.cfg.chunk.num_freqs, calib)
-        return cls(task=run.task, cfg=run.policy.cfg, action_dim=run.action_dim, params=run.policy.params,
-                   normalizer=run.policy.normalizer, inference=inference, thresholds=thresholds,
-                   thresholds_source=source,
-                   extra={"run": os.path.relpath(run.run_dir), "checkpoint_step": int(run.policy.step)})
 
 
 class ExportedBackend(PolicyBackend):

@@ -5,6 +5,7 @@
 - ``calibrate``: ``calibrate_run`` (thresholds from held-out demos or rollouts);
 - ``store``: locate and load a run, its stored inference settings and held-out data;
 - ``records``: a run record's network fingerprint, superseding and checks;
+- ``serve``: a run as a deployable policy (``deploy``'s ``InProcessBackend``: what is served and exported);
 - ``external``: an external task's run (``metaworld:<task>``): demos and closed-loop evaluation through its bridge;
 - ``lock``, ``cli``: one process per run dir; the command-line plumbing of ``experiments/``.
 

@@ -65,10 +65,10 @@ def evaluate_run(run_dir: str, *, episodes: int, first_seed: int, max_steps: int
     ``inference``) and evaluate it on ``episodes`` episodes of its task from initial-state seeds ``first_seed``, ...
     with its bridge, ``envs`` at a time; → the bridge's record plus ``checkpoint_step`` and the network's
     ``params_sha256`` (``records.params_fingerprint``)."""
-    from hipolicy_jax.deploy.backend import InProcessBackend
+    from hipolicy_jax.runs.serve import run_backend
     from hipolicy_jax.deploy.server import PolicyServer, ServerConfig
 
-    backend = InProcessBackend.from_run(run_dir, inference, step)
+    backend = run_backend(run_dir, inference, step)
     name = backend.metadata["task"]
     external.check_name(name)
     check_bridge(name)
