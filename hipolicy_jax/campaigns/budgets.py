@@ -67,12 +67,12 @@ BUDGETS: dict[str, Budget] = {
 }
 # The Meta-World training length T, fixed by the DP pilot (results/metaworld/PROTOCOL.md "Pilot entries"); None until
 # the pilot has chosen it (the campaign refuses to start the table's runs before).
-METAWORLD_STEPS: int | None = None
+METAWORLD_STEPS: int | None = 4000  # the pilot of 2026-12-05: T = 8000, rule 1 lowered it to 4000
 # The budget rules' task counts (PROTOCOL.md "Budget" rules 1 and 2, fixed after the pilot): the state columns run on
 # the first METAWORLD_STATE_TASKS of the protocol's task order (None: all 16), the point-cloud columns on the first
 # METAWORLD_POINTCLOUD_TASKS (None: none yet).
-METAWORLD_STATE_TASKS: int | None = None
-METAWORLD_POINTCLOUD_TASKS: int | None = None
+METAWORLD_STATE_TASKS: int | None = 10  # the pilot entry of 2026-12-05 (rule 1)
+METAWORLD_POINTCLOUD_TASKS: int | None = 0  # the pilot entry of 2026-12-05 (rule 2: none fits)
 # The Meta-World pilot: DP, seed 0, 8000 steps with checkpoints at 1000 / 2000 / 4000 / 8000 evaluated.
 METAWORLD_PILOT = {"train.num_steps": 8000, "train.ckpt_every": 1000}
 METAWORLD_PILOT_STEPS = (1000, 2000, 4000, 8000)

@@ -311,8 +311,9 @@ def main_table(args: MainArgs) -> str:
              f"for every column), step limit 200, through the policy server (`metaworld_bridge.evaluate`, openpi's "
              f"client); whole-chunk execution, HiPolicy entropy-guided at thresholds from a held-out demo. Training: "
              f"{steps} steps on 10 demos (one more held out).", PAIRED_NOTE,
-             "Point-cloud columns on " + (", ".join(args.resolved_pointcloud_tasks()) or "no task yet")
-             + " (protocol budget rule 2); '–' where a column has no record."]
+             "Point-cloud columns on " + (", ".join(args.resolved_pointcloud_tasks()) or "no task: at 512 points a "
+                                          "task's DP3 columns cost more than the 40 CPU-hours leave")
+             + " (protocol budget rule 2, pilot entry); '–' where a column has no record."]
     figure = success_by_task_figure(args, records, labels, "Meta-World")
     md = write_results(args, "Meta-World: success rate (%)", notes, table, records, figure)
     with open(md, "a") as f:
