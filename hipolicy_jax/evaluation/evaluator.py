@@ -31,11 +31,15 @@ class Evaluator:
     """Closed-loop evaluation of ``PolicyNet(cfg, action_dim)`` on ``task`` with the ``inference`` settings.
 
     ``task``: a task name (the env is built for the encoder's observations and camera) or an env. ``max_steps``
-    caps episodes (default: the task's limit). ``traces`` counts rollout traces (one per compile).
+    caps episodes (default: the task's limit). ``traces`` counts rollout traces (one per compile). ``compact``
+    (default): finished episodes stop costing sampler and physics (``rollout.Rollout``, blocks of
+    ``rollout.default_block(episodes, inference.num_samples)`` episodes); False: the vmapped episode of every
+    episode to the end of the longest.
     """
 
     def __init__(self, task: str | MjxEnv, cfg: PolicyConfig, action_dim: int,
-                 inference: InferenceConfig = InferenceConfig(), *, max_steps: int | None = None):
+                 inference: InferenceConfig = InferenceConfig(), *, max_steps: int | None = None,
+                 compact: bool = True):
         self.cfg, self.action_dim, self.inference = cfg, action_dim, inference
         self.env = envs_lib.make_for_encoder(task, cfg.encoder) if isinstance(task, str) else task
         self.task = task if isinstance(task, str) else task.name
@@ -47,7 +51,8 @@ class Evaluator:
         policy_fn, init_fn = make_policy_fn(self.net, cfg, action_dim, inference)
         self._rollout = Rollout(self.env, policy_fn, init_fn, history_len=cfg.chunk.obs_span,
                                 chunk_len=execution.exec_len(cfg.chunk), max_steps=max_steps,
-                                min_actions=execution.min_actions(cfg.chunk))
+                                min_actions=execution.min_actions(cfg.chunk), compact=compact,
+                                rows_per_episode=inference.num_samples)
         self._sampler = None
 
     @property

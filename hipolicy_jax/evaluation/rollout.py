@@ -25,7 +25,11 @@ no global cache.
 
 All episodes run in one jitted rollout: a ``lax.while_loop`` over decisions (until every episode is over), an
 inner ``lax.scan`` over the decision's actions. An episode is frozen (env state, history and policy state masked)
-once it is done or reaches the step limit.
+once it is done or reaches the step limit. The episode loop comes in pieces (``make_episode_loop``): the vmapped
+episode runs every episode's pieces until the longest is over; the compacted rollout (``compacted_rollout``,
+``Rollout(compact=True)``, the ``Evaluator``'s) runs each round of decisions on blocks of the episodes still
+running, so finished episodes cost neither sampler nor physics (the time of an evaluation is almost all sampler:
+``benchmarks/results/PERFORMANCE.md``, "Evaluation profile").
 
 The same episode loop (``make_episode_fn``) also records what videos need: the joint positions of every control
 step (and optionally observations), as a ``Recording``. Batched rollouts always record qpos (E·T·nq floats, cheap),
@@ -124,18 +128,27 @@ def _resolve(task: str | MjxEnv) -> MjxEnv:
     return envs_lib.make(task) if isinstance(task, str) else task
 
 
-def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *, history_len: int,
-                    chunk_len: int, max_steps: int | None = None, record: bool = False,
-                    record_obs: tuple[str, ...] = (),
-                    min_actions: int | None = None) -> Callable[[jax.Array, Any], tuple]:
-    """The un-batched, un-jitted rollout of one episode: ``episode(key, policy_args) -> (final State, Trace)``, plus a
-    ``Recording`` (qpos and the ``record_obs`` observations of every control step) as a third element when
-    ``record``. ``Rollout`` vmaps and jits it; ``video`` jits it alone.
+class EpisodeLoop(NamedTuple):
+    """The episode loop of ONE episode in pieces, so that a rollout can drive many episodes through the same code:
+    ``init(key) -> carry``, ``running(carry) -> ()`` bool (the episode takes another decision), ``decide(carry,
+    policy_args) -> carry`` (one decision and the control steps it executes), ``finish(carry) -> (final State,
+    Trace[, Recording])``. ``make_episode_fn`` runs them in a ``lax.while_loop``; ``Rollout`` either vmaps that over
+    episodes or (``compact``) calls ``decide`` on blocks of the episodes still running."""
 
-    Every decision returns ``chunk_len`` actions of which the first ``num_actions`` (all when None) are executed,
-    one per control step, before the next decision; ``min_actions`` (default ``chunk_len``) is the fewest a decision
-    may execute and sizes the per-decision trace: R = ceil(limit / min_actions) entries. The decisions run in a
-    ``lax.while_loop`` that stops once the episode is over (under ``vmap``: once every episode is)."""
+    init: Callable[[jax.Array], tuple]
+    running: Callable[[tuple], jax.Array]
+    decide: Callable[[tuple, Any], tuple]
+    finish: Callable[[tuple], tuple]
+
+
+def make_episode_loop(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *, history_len: int,
+                      chunk_len: int, max_steps: int | None = None, record: bool = False,
+                      record_obs: tuple[str, ...] = (), min_actions: int | None = None,
+                      early_exit: bool = False) -> EpisodeLoop:
+    """The pieces of ``make_episode_fn``'s episode (same arguments). ``early_exit``: a decision's control steps run
+    in a ``lax.while_loop`` that stops once the episode has executed the decision's ``num_actions`` actions (or is
+    over), instead of a ``lax.scan`` over all ``chunk_len`` (masked past them); the same steps and states either
+    way, fewer physics steps under ``vmap`` when every episode of the batch executes fewer than ``chunk_len``."""
     min_actions = chunk_len if min_actions is None else int(min_actions)
     if history_len < 1 or chunk_len < 1 or not 1 <= min_actions <= chunk_len:
         raise ValueError(f"history_len, chunk_len must be >= 1 and min_actions in [1, chunk_len], got {history_len}, "
@@ -153,7 +166,7 @@ def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *
     def snapshot(state):
         return state.data.qpos, {k: state.obs[k] for k in record_obs}
 
-    def episode(key, policy_args):
+    def init(key):
         k_reset, k_init, k_policy = jax.random.split(key, 3)
         state = env.reset(k_reset)
         history = init_history(state.obs, history_len)
@@ -165,39 +178,52 @@ def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *
         # same frozen state once the episode is over
         frames = jax.tree.map(lambda x: jnp.zeros((limit + 1, *x.shape), x.dtype), snapshot(state)) if record else ()
         frames = jax.tree.map(lambda buf, x: buf.at[0].set(x), frames, snapshot(state)) if record else ()
+        body_pos = state.info["body_pos"]
+        return jnp.zeros((), jnp.int32), state, history, pstate, trace, frames, k_policy, body_pos
 
-        def running(carry):
-            r, state = carry[0], carry[1]
-            return (r < num_replans) & ~finished(state)
+    def running(carry):
+        r, state = carry[0], carry[1]
+        return (r < num_replans) & ~finished(state)
 
-        def decide(carry):
-            r, state, history, pstate, trace, frames = carry
-            out, pstate = policy_fn(history, jax.random.fold_in(k_policy, r), pstate, policy_args)
-            n = chunk_len if out.num_actions is None else jnp.clip(out.num_actions, 1, chunk_len)
-            start = state.step
+    def decide(carry, policy_args):
+        r, state, history, pstate, trace, frames, k_policy, body_pos = carry
+        out, pstate = policy_fn(history, jax.random.fold_in(k_policy, r), pstate, policy_args)
+        n = chunk_len if out.num_actions is None else jnp.clip(out.num_actions, 1, chunk_len)
+        start = state.step
 
-            def act(inner, i_action):
-                i, action = i_action
-                state, history, frames = inner
-                new_state = env.step(state, action)
-                new_history = push_history(history, new_state.obs)
-                keep = finished(state) | (i >= n)
-                state, history = _select(keep, state, new_state), _select(keep, history, new_history)
-                if record:
-                    frames = jax.tree.map(lambda buf, x: buf.at[state.step].set(x), frames, snapshot(state))
-                return (state, history, frames), None
+        def act(inner, i_action):
+            i, action = i_action
+            state, history, frames = inner
+            new_state = env.step(state, action)
+            new_history = push_history(history, new_state.obs)
+            keep = finished(state) | (i >= n)
+            state, history = _select(keep, state, new_state), _select(keep, history, new_history)
+            if record:
+                frames = jax.tree.map(lambda buf, x: buf.at[state.step].set(x), frames, snapshot(state))
+            return (state, history, frames), None
 
+        if early_exit:
+            def more(inner):
+                i, state = inner[0], inner[1]
+                return (i < chunk_len) & (i < n) & ~finished(state)
+
+            def one(inner):
+                i = inner[0]
+                return (i + 1, *act(inner[1:], (i, out.actions[i]))[0])
+
+            _, state, history, frames = jax.lax.while_loop(more, one, (jnp.zeros((), jnp.int32), state, history,
+                                                                       frames))
+        else:
             (state, history, frames), _ = jax.lax.scan(act, (state, history, frames),
                                                        (jnp.arange(chunk_len), out.actions))
-            trace = Trace(entropy=trace.entropy.at[r].set(jnp.asarray(out.entropy, jnp.float32)),
-                          stride=trace.stride.at[r].set(jnp.asarray(out.stride, jnp.int32)),
-                          valid=trace.valid.at[r].set(True), start=trace.start.at[r].set(start),
-                          executed=trace.executed.at[r].set(state.step - start))
-            return r + 1, state, history, pstate, trace, frames
+        trace = Trace(entropy=trace.entropy.at[r].set(jnp.asarray(out.entropy, jnp.float32)),
+                      stride=trace.stride.at[r].set(jnp.asarray(out.stride, jnp.int32)),
+                      valid=trace.valid.at[r].set(True), start=trace.start.at[r].set(start),
+                      executed=trace.executed.at[r].set(state.step - start))
+        return r + 1, state, history, pstate, trace, frames, k_policy, body_pos
 
-        body_pos = state.info["body_pos"]
-        _, state, _, _, trace, frames = jax.lax.while_loop(
-            running, decide, (jnp.zeros((), jnp.int32), state, history, pstate, trace, frames))
+    def finish(carry):
+        _, state, _, _, trace, frames, _, body_pos = carry
         if not record:
             return state, trace
         # entries past the last step repeat the final state
@@ -206,7 +232,84 @@ def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *
                                                        buf), frames)
         return state, trace, Recording(qpos=qpos, body_pos=body_pos, obs=obs)
 
+    return EpisodeLoop(init, running, decide, finish)
+
+
+def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *, history_len: int,
+                    chunk_len: int, max_steps: int | None = None, record: bool = False,
+                    record_obs: tuple[str, ...] = (),
+                    min_actions: int | None = None) -> Callable[[jax.Array, Any], tuple]:
+    """The un-batched, un-jitted rollout of one episode: ``episode(key, policy_args) -> (final State, Trace)``, plus a
+    ``Recording`` (qpos and the ``record_obs`` observations of every control step) as a third element when
+    ``record``. ``Rollout`` vmaps and jits it; ``video`` jits it alone.
+
+    Every decision returns ``chunk_len`` actions of which the first ``num_actions`` (all when None) are executed,
+    one per control step, before the next decision; ``min_actions`` (default ``chunk_len``) is the fewest a decision
+    may execute and sizes the per-decision trace: R = ceil(limit / min_actions) entries. The decisions run in a
+    ``lax.while_loop`` that stops once the episode is over (under ``vmap``: once every episode is)."""
+    loop = make_episode_loop(env, policy_fn, init_fn, history_len=history_len, chunk_len=chunk_len,
+                             max_steps=max_steps, record=record, record_obs=record_obs, min_actions=min_actions)
+
+    def episode(key, policy_args):
+        carry = jax.lax.while_loop(loop.running, lambda c: loop.decide(c, policy_args), loop.init(key))
+        return loop.finish(carry)
+
     return episode
+
+
+def default_block(num_episodes: int, rows_per_episode: int = 1, min_rows: int | None = None) -> int:
+    """Episodes per block of a compacted rollout: equal blocks of at least ``min_rows`` policy rows
+    (``rows_per_episode``: the sampler's N; default ``MIN_BLOCK_ROWS`` of the backend), so a block runs the policy
+    as fast per row as the whole batch while finished episodes drop out in steps of a block. On a CPU the sampler's
+    time per episode is flat from ~64 to 1600 rows (cpu-size U-Net, N = 16: 10 episodes 129 ms, 25 124 ms, 100
+    142 ms; PERFORMANCE.md, "Evaluation profile"); an accelerator wants far larger batches."""
+    if min_rows is None:
+        min_rows = MIN_BLOCK_ROWS.get(jax.default_backend(), MIN_BLOCK_ROWS["other"])
+    k = max(1, num_episodes * max(1, rows_per_episode) // max(1, min_rows))
+    return -(-num_episodes // k)
+
+
+MIN_BLOCK_ROWS = {"cpu": 160, "other": 8192}
+
+
+def compacted_rollout(loop: EpisodeLoop, num_episodes: int, block: int) -> Callable[[jax.Array, Any], tuple]:
+    """``rollout(keys (E,), policy_args) -> vmap(finish)`` of E episodes that decide in blocks of ``block`` running
+    episodes: every round of decisions gathers the episodes still running (in episode order) into
+    ceil(running / block) blocks and calls ``vmap(decide)`` on each, so finished episodes cost neither policy nor
+    physics, and a round of decisions costs as many blocks as there are running episodes. Every episode's own
+    computation (keys, decisions, control steps, trace, recording) is that of ``make_episode_fn``; only the batch
+    its policy and physics run in changes (``block`` = E: the whole batch, as ``vmap`` of the episode)."""
+    e, g = int(num_episodes), int(block)
+    if not 1 <= g <= e:
+        raise ValueError(f"block: episodes per block must be in [1, num_episodes={e}], got {g}")
+    padded = -(-e // g) * g
+
+    def rollout(keys, policy_args):
+        carry = jax.vmap(loop.init)(keys)
+        decide = jax.vmap(loop.decide, in_axes=(0, None))
+
+        def any_running(carry):
+            return jnp.any(jax.vmap(loop.running)(carry))
+
+        def round_of_decisions(carry):
+            live = jax.vmap(loop.running)(carry)
+            count = live.sum()
+            order = jnp.argsort(~live, stable=True)  # running episodes first, in episode order
+            order = jnp.concatenate([order, jnp.full((padded - e,), e - 1, order.dtype)])
+
+            def one_block(b, carry):
+                pos = b * g + jnp.arange(g)
+                idx = jax.lax.dynamic_slice(order, (b * g,), (g,))
+                new = decide(jax.tree.map(lambda x: x[idx], carry), policy_args)
+                dest = jnp.where(pos < count, idx, e)  # rows past the running ones are dropped
+                return jax.tree.map(lambda x, y: x.at[dest].set(y, mode="drop"), carry, new)
+
+            return jax.lax.fori_loop(0, (count + g - 1) // g, one_block, carry)
+
+        carry = jax.lax.while_loop(any_running, round_of_decisions, carry)
+        return jax.vmap(loop.finish)(carry)
+
+    return rollout
 
 
 def check_policy_shape(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, policy_args, *,
@@ -235,24 +338,54 @@ class Rollout:
     compiled program: calls with new ``policy_args`` of the same shapes (new parameters, thresholds) and the same
     number of episodes reuse it. ``traces`` counts how often the episode was traced (one per compile).
 
+    ``compact=True`` runs the episodes through ``compacted_rollout`` instead (``block`` episodes per block, default
+    ``default_block(num_episodes, rows_per_episode)``): finished episodes stop costing policy and physics, and when
+    a decision may execute fewer than ``chunk_len`` actions (``min_actions`` < ``chunk_len``) its control steps stop
+    once the running episodes have executed them (``early_exit``). Every episode's keys, decisions and control
+    steps are the same. The floating-point results are the vmapped episode's bit for bit when one block holds
+    every episode and there is no early exit; blocks of fewer episodes run the policy at another batch size, and
+    the early exit's loop compiles the physics in another context, so their results may differ in the last bits
+    (as those of any other batch size do). Only for policies whose rows are independent episodes: a policy whose
+    i-th row is tied to the i-th episode (e.g. a remote policy with one connection per row) needs the default.
+
     With several (local) devices the episodes are sharded across them (when their count divides ``num_episodes``;
-    otherwise everything runs on one device) and ``policy_args`` is replicated.
+    otherwise everything runs on one device), ``policy_args`` is replicated and ``compact`` is not used.
     """
 
     def __init__(self, env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *, history_len: int,
-                 chunk_len: int, max_steps: int | None = None, min_actions: int | None = None):
+                 chunk_len: int, max_steps: int | None = None, min_actions: int | None = None,
+                 compact: bool = False, block: int | None = None, rows_per_episode: int = 1):
         self.env, self.policy_fn, self.init_fn = env, policy_fn, init_fn
         self.history_len, self.chunk_len, self.max_steps = history_len, chunk_len, max_steps
+        self.compact, self.block, self.rows_per_episode = compact, block, rows_per_episode
         self.traces = 0
-        episode = make_episode_fn(env, policy_fn, init_fn, history_len=history_len, chunk_len=chunk_len,
-                                  max_steps=max_steps, record=True, min_actions=min_actions)
+        kwargs = dict(history_len=history_len, chunk_len=chunk_len, max_steps=max_steps, record=True,
+                      min_actions=min_actions)
+        episode = make_episode_fn(env, policy_fn, init_fn, **kwargs)
 
         def rollout_episode(key, policy_args):
             self.traces += 1
             return episode(key, policy_args)
 
         self._jitted = jax.jit(jax.vmap(rollout_episode, in_axes=(0, None)))
+        # a decision that may execute fewer than chunk_len actions (AAC, asynchronous chunks) stops its control steps
+        # early; otherwise the scan is kept (the physics compiles as in the vmapped episode: bit for bit the same
+        # states when a block holds every episode)
+        loop = make_episode_loop(env, policy_fn, init_fn, early_exit=(min_actions or chunk_len) < chunk_len,
+                                 **kwargs)
+
+        def rollout_compacted(keys, policy_args, block):
+            self.traces += 1
+            return compacted_rollout(loop, keys.shape[0], block)(keys, policy_args)
+
+        self._compacted = jax.jit(rollout_compacted, static_argnums=2)
         self._checked: set = set()
+
+    def block_for(self, num_episodes: int) -> int | None:
+        """Episodes per block of a compacted rollout of ``num_episodes`` (None: not compacted)."""
+        if not self.compact:
+            return None
+        return min(self.block, num_episodes) if self.block else default_block(num_episodes, self.rows_per_episode)
 
     def __call__(self, num_episodes: int, key: jax.Array, policy_args=()) -> tuple[EvalResult, Recording]:
         signature = _signature(policy_args)
@@ -265,9 +398,12 @@ class Rollout:
         if mesh is not None and num_episodes % mesh.size == 0:
             keys = parallel.shard_batch(keys, mesh)
             policy_args = parallel.replicate(policy_args, mesh)
+            state, trace, recording = self._jitted(keys, policy_args)
+        elif self.compact:
+            state, trace, recording = self._compacted(jax.device_put(keys), policy_args,
+                                                      self.block_for(num_episodes))
         else:
-            keys = jax.device_put(keys)
-        state, trace, recording = self._jitted(keys, policy_args)
+            state, trace, recording = self._jitted(jax.device_put(keys), policy_args)
         return score(state, trace), recording
 
 
