@@ -557,7 +557,8 @@ def test_remote_evaluation_matches_in_process(run_dir, exported, server):
         for x, k in zip(jax.tree.leaves(run.policy.params), noise)])
     other_backend = copy.copy(backend)  # the same compiled decision, other parameters
     other_backend._args = backend._args._replace(params=other)
-    other_server = PolicyServer(other_backend, ServerConfig(port=0, max_batch=4), log=lambda msg: None)
+    other_server = PolicyServer(other_backend, ServerConfig(port=0, max_batch=4, batch_window_ms=500),  # as `server`
+                                log=lambda msg: None)
     other_server.start_in_thread()
     try:
         with PolicyClient(_url(server)) as client:
