@@ -24,6 +24,9 @@ SECTIONS = (("sampling", "One-call N-sample latency (the paper's sample-times ta
             ("profile", "Where the time goes: profile by model part (jax.profiler trace)"),
             ("precision", "bf16 vs float32: sample statistics of trained runs"),
             ("rollout", "Closed-loop rollout throughput (MJX, policy in the loop)"),
+            ("profile_eval", "Evaluation profile: where one closed-loop evaluation's time goes"),
+            ("profile_eval_compare_e100", "Compacted rollout vs the vmapped one, 100 episodes (interleaved, one run)"),
+            ("profile_eval_compare_e20", "Compacted rollout vs the vmapped one, 20 episodes (interleaved, one run)"),
             ("tradeoff", "Latency–success trade-off"),
             ("delay", "Asynchronous execution: success under inference delay"),
             ("serving", "Policy serving: in-process, exported, websocket round trip"))
