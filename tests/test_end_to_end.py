@@ -41,7 +41,7 @@ def test_train_calibrate_evaluate_tiny(tmp_path):
     assert (tmp_path / "run" / "calibration.json").exists() and (tmp_path / "run" / "summary.json").exists()
     assert read_inference(str(tmp_path / "run")) == args.inference
     # two evaluations (steps 6 and 12, the final one reused) with new parameters each: one compiled rollout
-    assert sum("rollout_episode" in name for name in compiled) == 1, compiled
+    assert sum("jit(rollout" in name for name in compiled) == 1, compiled
 
     # experiments.evaluate's defaults (the run's inference.json, its training seed) reproduce the final evaluation
     from experiments import evaluate
