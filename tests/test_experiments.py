@@ -25,8 +25,8 @@ from experiments import calibrate, evaluate, paper
 from hipolicy_jax import envs, jsonio
 from hipolicy_jax.campaigns.budgets import BUDGETS, DP, variant_name
 from hipolicy_jax.checkpoint import config_to_dict
-from hipolicy_jax.campaigns.campaign import (Campaign, Column, CostModel, Deadline, Job, choose_low_regime, parse_until,
-                                        pilot_candidates, schedule, shard)
+from hipolicy_jax.campaigns.campaign import (Campaign, Column, CostModel, Deadline, Job, choose_low_regime,
+                                        evaluation_rollout, parse_until, pilot_candidates, schedule, shard)
 from hipolicy_jax.campaigns import report, tables
 from hipolicy_jax.runs.cli import parse_with_run_inference
 from hipolicy_jax.runs.lock import CAMPAIGN_LOCK_FILE, RunLock
@@ -471,6 +471,8 @@ def test_campaign_records_an_evaluation_and_rebuilds_from_it(tiny, tmp_path):
     assert record["calibration"]["thresholds"] == _load(os.path.join(run, "calibration.json"))["thresholds"]
     cores = len(os.sched_getaffinity(0))  # the cost accounting: wall time x the cores the process ran on
     assert record["training"]["cpu_cores"] == evaluation["cpu_cores"] == cores
+    # which rollout made it (the Evaluator's default, the compacted one): the cost model plans with its rate
+    assert evaluation["rollout"] == "compacted" and evaluation_rollout(evaluation) == "compacted"
     # the demos' size travels with the record, so the main table's "Demo steps" rebuilds without the buffer
     from hipolicy_jax.data.replay_buffer import ReplayBuffer
 
@@ -707,6 +709,36 @@ def test_campaign_shards_split_runs_and_the_plan_estimates_from_records(tmp_path
     assert f"{(2 * (10.0 * steps + 10.0) + 10.0) / 3600:.1f} CPU-hours" in text
     with pytest.raises(ValueError, match="shard: expected K N with 0 <= K < N, got 2 2"):
         tables.campaign_table(dataclasses.replace(args, shard=(2, 2)))
+
+
+def test_cost_model_plans_evaluations_at_the_compacted_rollout_rate(tmp_path):
+    """The compacted rollout (the Evaluator's default) evaluates faster than the vmapped one that made the older
+    records (no ``rollout``): an evaluation is estimated from the compacted ones when its selection has any (before
+    the cores-stated preference), else from the vmapped ones; a Meta-World evaluation (no MJX rollout) counts as
+    made at today's rate."""
+    def write(records, name, variant, evaluations, **rec):
+        path = tmp_path / records / "cpu" / name.replace(":", "_") / "state" / variant / "seed0.json"
+        path.parent.mkdir(parents=True)
+        path.write_text(json.dumps({"training": {}, "evaluations": {
+            str(i): {"settings": {"execution": execution}, "eval_s": s, **extra}
+            for i, (execution, s, extra) in enumerate(evaluations)}, **rec}))
+
+    stated = {"cpu_cores": 2}
+    write("records", "press_button", "dp", [("chunk", 30.0, stated), ("te", 40.0, stated), ("aac", 50.0, stated)])
+    write("records", "press_button", "hipolicy", [("chunk", 10.0, {**stated, "rollout": "compacted"}),
+                                                  ("aac", 8.0, {"rollout": "compacted"}),  # cores unstated (2)
+                                                  ("te", 45.0, {**stated, "rollout": "vmapped"})])
+    model = CostModel(str(tmp_path / "records"), str(tmp_path / "runs"))
+    assert model.eval_seconds("press_button", "chunk") == 10.0 * 2  # the compacted one, not the vmapped 60
+    assert model.eval_seconds("press_button", "te") == (40.0 + 45.0) / 2 * 2  # no compacted one: the vmapped ones
+    assert model.eval_seconds("press_button", "aac") == 8.0 * 2  # compacted first, then cores stated
+    assert model.eval_seconds("stack_cubes", "chunk") == 10.0 * 2  # any task: compacted, of those cores stated
+    # the vmapped older records of an MJX task and a Meta-World record (no "rollout" either): the latter is today's
+    write("external", "press_button", "dp", [("chunk", 30.0, stated)])
+    write("external", "metaworld:basketball", "dp", [("chunk", 100.0, stated)], task="metaworld:basketball")
+    model = CostModel(str(tmp_path / "external"), str(tmp_path / "runs"))
+    assert model.eval_seconds("stack_cubes", "chunk") == 100.0 * 2
+    assert model.eval_seconds("press_button", "chunk") == 30.0 * 2
 
 
 def test_deadline_starts_only_the_jobs_that_end_before_until():

@@ -224,7 +224,7 @@ class Campaign:
                                   "success": [bool(x) for x in np.asarray(result.success)],
                                   "steps": [int(x) for x in np.asarray(result.steps)],
                                   "decisions": [int(x) for x in valid.sum(axis=1)], "eval_s": time.perf_counter() - t0,
-                                  "cpu_cores": cpu_cores()}
+                                  "cpu_cores": cpu_cores(), "rollout": ev.rollout_kind}
             evaluation["network"] = net
             evaluation = jsonio.loads(jsonio.dumps(evaluation))  # as records hold it (NaN: None), fresh or reread
             record = {"version": RECORD_VERSION, "budget": self.budget, "run_dir": os.path.relpath(run.run_dir),
@@ -313,6 +313,12 @@ def read_record(path: str) -> dict:
     return record
 
 
+def evaluation_rollout(evaluation: dict) -> str:
+    """Which rollout made an MJX evaluation of a record: its ``"rollout"`` (``Evaluator.rollout_kind``), else
+    ``"vmapped"`` (the records made before the compacted rollout became the Evaluator's default)."""
+    return evaluation.get("rollout", "vmapped")
+
+
 def _same_evaluation(evaluations: dict[str, dict], settings: dict, thresholds: list | None) -> str | None:
     """The key of a recorded evaluation with the same inputs: settings equal but for the percentiles (which only
     choose the thresholds) and the same thresholds; evaluations are deterministic, so its numbers are this one's."""
@@ -367,16 +373,20 @@ class CostModel:
     record does not say), from the measured times the records hold: the run's training when it has none yet
     (seconds per step of the same network and batch on the same task, else on any task, else of any run of the
     observation type, × the run's steps), plus the evaluation (the same task and execution strategy, else the task,
-    else any); 0 for an evaluation another table's column already makes. Medians, and within each selection only the
-    records that say their cores when any do (a record without them comes from a process that shared its cores
-    with others), so a run slowed by other jobs does not skew them; None when no record of the observation type
-    exists yet."""
+    else any); 0 for an evaluation another table's column already makes. Medians, each over the first non-empty
+    selection narrowed by preferences in turn (each keeps only the rows that have it, when any do): for
+    evaluations, those made at today's rate — by the compacted rollout (``"rollout"``; an MJX evaluation without it
+    was made by the older, slower vmapped one) or externally (a Meta-World evaluation, no MJX rollout) — then those
+    that say their cores (a record without them comes from a process that shared its cores with others, so a run
+    slowed by other jobs does not skew them); for training, those that say their cores. None when no record of
+    the observation type exists yet."""
 
     def __init__(self, records: str, runs: str):
         self.records, self.runs = records, runs
-        # ((task, obs, training key), seconds per step, cores stated)
-        self._train: list[tuple[tuple[str, str, str], float, bool]] = []
-        self._eval: list[tuple[tuple[str, str], float, bool]] = []  # ((task, execution), seconds, cores stated)
+        # ((task, obs, training key), seconds per step, (cores stated,))
+        self._train: list[tuple[tuple[str, str, str], float, tuple[bool, ...]]] = []
+        # ((task, execution), seconds, (at today's rollout rate, cores stated))
+        self._eval: list[tuple[tuple[str, str], float, tuple[bool, ...]]] = []
         self._spent: dict[str, dict[str, float]] = {}  # budget → CPU-seconds and counts of what the records hold
         for path in glob.glob(os.path.join(records, "**", "*.json"), recursive=True):
             rec = read_json(path)
@@ -392,15 +402,17 @@ class CostModel:
                 spent["train_s"] += wall * (cores or 2)
                 spent["runs"] += 1
             if steps and wall:
-                self._train.append(((task, obs, key), wall * (cores or 2) / steps, cores is not None))
+                self._train.append(((task, obs, key), wall * (cores or 2) / steps, (cores is not None,)))
+            external = envs.external.is_external(rec.get("task") or "")
             evaluations = [*rec.get("evaluations", {}).values(),
                            *(ev for old in rec.get("superseded", []) for ev in old["evaluations"].values())]
             for ev in evaluations:
                 if ev.get("eval_s"):
                     spent["eval_s"] += ev["eval_s"] * (ev.get("cpu_cores") or 2)
                     spent["evaluations"] += 1
+                    current = external or evaluation_rollout(ev) == "compacted"
                     self._eval.append(((task, ev["settings"]["execution"]), ev["eval_s"] * (ev.get("cpu_cores") or 2),
-                                       ev.get("cpu_cores") is not None))
+                                       (current, ev.get("cpu_cores") is not None)))
 
     def spent(self, budget: str) -> dict[str, float]:
         """What the records of ``budget`` cost, each run and each evaluation counted once (however many tables use
@@ -411,13 +423,14 @@ class CostModel:
 
     @staticmethod
     def _median(rows, *matches) -> float | None:
-        """The median of the first non-empty selection: rows whose key matches ``m`` where ``m`` is not None; of
-        its rows that state their cores when there are any."""
+        """The median of the first non-empty selection: rows ``(key, value, preferences)`` whose key matches ``m``
+        where ``m`` is not None; narrowed by each preference in turn to its rows that have it, when there are any."""
         for match in matches:
-            chosen = [(v, known) for key, v, known in rows if all(m is None or k == m for k, m in zip(key, match))]
+            chosen = [(v, prefs) for key, v, prefs in rows if all(m is None or k == m for k, m in zip(key, match))]
             if chosen:
-                known = [v for v, k in chosen if k]
-                return float(np.median(known or [v for v, _ in chosen]))
+                for i in range(len(chosen[0][1])):
+                    chosen = [row for row in chosen if row[1][i]] or chosen
+                return float(np.median([v for v, _ in chosen]))
         return None
 
     def train_seconds(self, cfg: RunConfig) -> float | None:

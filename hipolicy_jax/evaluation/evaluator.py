@@ -59,6 +59,12 @@ class Evaluator:
     def traces(self) -> int:
         return self._rollout.traces
 
+    @property
+    def rollout_kind(self) -> str:
+        """Which rollout evaluates: ``"compacted"`` (``compact``) or ``"vmapped"``; campaign records keep it, since
+        the two take different times for the same evaluation."""
+        return "compacted" if self._rollout.compact else "vmapped"
+
     def rollout(self, params, normalizer, num_episodes: int, key, thresholds=None,
                 entropy_guided: bool | None = None) -> tuple[EvalResult, Recording]:
         """Roll out ``num_episodes`` episodes (initial states from ``key``) in one compiled call → (result, qpos
