@@ -298,28 +298,39 @@ def memory_bandwidth_gbs(mbytes: int = 512, repeats: int = 10) -> dict[str, floa
     return {"mbytes": mbytes, "gbs": a.nbytes / min(times) / 1e9, "median_gbs": a.nbytes / float(np.median(times)) / 1e9}
 
 
-def write_results(name: str, payload: dict, out_dir: str | None = None) -> str:
+def machine_peaks() -> dict[str, float]:
+    """The machine peaks of the default JAX device, measured now (~2–4 s on a 2-core CPU): the best float32
+    matmul GFLOP/s (``matmul_peak_gflops``) and read GB/s (``memory_bandwidth_gbs``, 256 MB)."""
+    mm = matmul_peak_gflops(repeats=5)
+    bw = memory_bandwidth_gbs(mbytes=256, repeats=5)
+    return {"matmul_f32_gflops": mm["gflops"], "matmul_n": mm["n"], "matmul_f32_median_gflops": mm["median_gflops"],
+            "bandwidth_gbs": bw["gbs"], "bandwidth_mbytes": bw["mbytes"], "bandwidth_median_gbs": bw["median_gbs"]}
+
+
+def write_results(name: str, payload: dict, out_dir: str | None = None, peaks: dict | None = None) -> str:
     """Write ``payload`` (plus device metadata and ``machine``: the CPU model, core count, load average and the
-    machine peaks measured in this process, ``benchmarks.machine``) to ``<out_dir>/<name>_<device>.json``; returns
-    the path."""
+    machine peaks, ``benchmarks.machine``) to ``<out_dir>/<name>_<device>.json``; returns the path. ``peaks``:
+    figures measured earlier in this process (default: ``machine_peaks()`` now, as the JSON is written)."""
     out_dir = out_dir or RESULTS_DIR
     os.makedirs(out_dir, exist_ok=True)
     path = os.path.join(out_dir, f"{name}_{device_kind()}.json")
     meta = {"benchmark": name, "device": device_kind(), "device_description": device_description(),
-            "jax_version": jax.__version__, "time": time.strftime("%Y-%m-%dT%H:%M:%S"), "machine": machine_info()}
+            "jax_version": jax.__version__, "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+            "machine": machine_info(machine_peaks if peaks is None else lambda: peaks)}
     with open(path, "w") as f:
         f.write(jsonio.dumps({**meta, **payload}, indent=1))
         f.write("\n")
     return path
 
 
-def report_rows(name: str, argv, args, rows: list[dict], table: str, **extra) -> dict:
+def report_rows(name: str, argv, args, rows: list[dict], table: str, module: str | None = None, **extra) -> dict:
     """Print ``table``, write ``{command, args, **extra, rows, table_md}`` as the benchmark's JSON; → the payload.
-    ``argv``: the ``main(argv)`` argument (None: ``sys.argv[1:]``); ``args``: the parsed namespace."""
+    ``argv``: the ``main(argv)`` argument (None: ``sys.argv[1:]``); ``args``: the parsed namespace; ``module``:
+    the benchmark's module when the JSON's ``name`` is not (``profile_eval_compare`` of ``profile_eval``)."""
     import sys
 
     print(table)
-    payload = {"command": f"python -m benchmarks.{name} " + " ".join(sys.argv[1:] if argv is None else argv),
+    payload = {"command": f"python -m benchmarks.{module or name} " + " ".join(sys.argv[1:] if argv is None else argv),
                "args": {k: v for k, v in vars(args).items() if k != "out_dir"}, **extra, "rows": rows,
                "table_md": table}
     print(f"wrote {write_results(name, payload, args.out_dir)}")
@@ -345,5 +356,5 @@ def precision_context(precision: str | None):
 
 __all__ = ["ACTION_DIM", "BenchPolicy", "MemoryMonitor", "RESULTS_DIR", "SIZES", "STATE_DIM", "bench_config",
            "compiled_flops", "device_description", "device_kind", "example_obs", "latency_stats",
-           "make_bench_policy", "SHAPES", "BenchModel", "bench_models", "markdown_table", "matmul_peak_gflops", "memory_bandwidth_gbs", "param_count", "precision_context",
+           "machine_peaks", "make_bench_policy", "SHAPES", "BenchModel", "bench_models", "markdown_table", "matmul_peak_gflops", "memory_bandwidth_gbs", "param_count", "precision_context",
            "timed_calls", "write_results"]

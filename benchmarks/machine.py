@@ -3,15 +3,16 @@
 ``machine_info()`` → ``{cpu_model, cpu_count, cpu_affinity, load_average, peaks}``: the CPU model (``/proc/cpuinfo``
 "model name", ``lscpu`` where /proc is missing), the logical core count and the cores this process may run on, the
 1/5/15-minute load average when the JSON is written (other jobs on a shared machine show up here) and the machine
-peaks **measured in the same process**, once per process (``peaks()``):
+peaks **measured in the same process** by the ``measure`` it is given (``benchmarks.common.machine_peaks`` for the
+JAX benchmarks, when ``write_results`` writes the JSON):
 
 - ``matmul_f32_gflops``: the best GFLOP/s of an n x n float32 matmul (``common.matmul_peak_gflops``; n = 2048 on a
   CPU, 8192 otherwise),
 - ``bandwidth_gbs``: the best GB/s of summing a 256 MB float32 array (``common.memory_bandwidth_gbs``).
 
 They take ~2–4 s on a 2-core CPU. ``HIPOLICY_BENCH_PEAKS=0`` skips them (``peaks`` is then None), e.g. for a quick
-smoke run. This module imports JAX only to measure the peaks, so a script of another framework (the PyTorch peer)
-can record the rest and pass its own ``peaks``.
+smoke run. This module does not import JAX, so a script of another framework (the PyTorch peer) records the rest
+and measures its own peaks.
 """
 
 from __future__ import annotations
@@ -21,7 +22,6 @@ import subprocess
 from typing import Any, Callable
 
 PEAKS_ENV = "HIPOLICY_BENCH_PEAKS"
-_PEAKS: dict[str, Any] = {}  # measured once per process
 
 
 def cpu_model(cpuinfo: str = "/proc/cpuinfo") -> str:
@@ -63,29 +63,13 @@ def load_average() -> list[float] | None:
         return None
 
 
-def peaks(force: bool = False) -> dict[str, Any] | None:
-    """The machine peaks of the default JAX device, measured once per process (None when ``HIPOLICY_BENCH_PEAKS``
-    is 0)."""
-    if os.environ.get(PEAKS_ENV, "1") == "0":
-        return None
-    if force or not _PEAKS:
-        from benchmarks.common import matmul_peak_gflops, memory_bandwidth_gbs
-
-        mm = matmul_peak_gflops(repeats=5)
-        bw = memory_bandwidth_gbs(mbytes=256, repeats=5)
-        _PEAKS.clear()
-        _PEAKS.update({"matmul_f32_gflops": mm["gflops"], "matmul_n": mm["n"],
-                       "matmul_f32_median_gflops": mm["median_gflops"], "bandwidth_gbs": bw["gbs"],
-                       "bandwidth_mbytes": bw["mbytes"], "bandwidth_median_gbs": bw["median_gbs"]})
-    return dict(_PEAKS)
-
-
-def machine_info(measure: Callable[[], dict | None] | None = None) -> dict[str, Any]:
-    """The ``machine`` entry of a benchmark JSON; ``measure`` gives the peaks (default: ``peaks``, measured with
-    JAX)."""
-    measure = peaks if measure is None else measure
+def machine_info(measure: Callable[[], dict] | None = None) -> dict[str, Any]:
+    """The ``machine`` entry of a benchmark JSON; ``measure()`` measures the peaks in this process (JAX benchmarks:
+    ``benchmarks.common.machine_peaks``; the PyTorch peer its own). ``peaks`` is None without ``measure`` or when
+    ``HIPOLICY_BENCH_PEAKS`` is 0."""
+    skip = measure is None or os.environ.get(PEAKS_ENV, "1") == "0"
     return {"cpu_model": cpu_model(), "cpu_count": os.cpu_count(), "cpu_affinity": cpu_affinity(),
-            "load_average": load_average(), "peaks": measure()}
+            "load_average": load_average(), "peaks": None if skip else measure()}
 
 
-__all__ = ["PEAKS_ENV", "cpu_affinity", "cpu_model", "load_average", "machine_info", "peaks"]
+__all__ = ["PEAKS_ENV", "cpu_affinity", "cpu_model", "load_average", "machine_info"]

@@ -26,12 +26,22 @@ overhead; negative when the pieces run slower alone than fused).
 (``compact=True``, the ``Evaluator`` default) are compiled ahead of time (cold compile, timed), then run
 alternately (``--rounds`` times each, old first), and their per-episode success, steps and decisions are
 compared (they must be identical). Env steps/s counts the control steps the episodes executed.
+
+**Compile** (``--compile``): per cell, a fresh process with an empty persistent compilation cache compiles the
+Evaluator's rollout (cold), then reset, one env step and the sampler alone (what the rollout's compile is made of);
+a second fresh process on the same cache compiles the rollout again (warm: what a campaign's next run of the same
+shapes pays, ``runs.cli.enable_compilation_cache``).
 """
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import glob
+import json
+import subprocess
+import sys
+import tempfile
 import math
 import os
 import time
@@ -65,6 +75,8 @@ def parse_args(argv=None):
     p.add_argument("--repeats", type=int, default=3, help="timed calls per piece")
     p.add_argument("--compare", action="store_true", help="old (vmapped) vs compacted rollout, interleaved")
     p.add_argument("--rounds", type=int, default=1, help="--compare: timed rollouts per path (after the compile)")
+    p.add_argument("--compile", action="store_true", help="cold and warm-cache compile times of the rollout")
+    p.add_argument("--compile-child", default=None, help=argparse.SUPPRESS)  # cache dir of a --compile process
     p.add_argument("--block", type=int, default=None, help="--compare: episodes per block (default: the Evaluator's)")
     p.add_argument("--max-steps", type=int, default=None, help="cap the episodes (default: the task's limit)")
     p.add_argument("--tag", default="", help="appended to the JSON's name (profile_eval[_compare][_TAG]_<device>)")
@@ -209,6 +221,55 @@ def profile_cell(args, task: str, kind: str, execution: str) -> dict:
     return row
 
 
+def compile_times(args, task: str, kind: str, execution: str, pieces: bool) -> dict:
+    """In this process (its cache: ``args.compile_child``): seconds to compile the Evaluator's rollout, and with
+    ``pieces`` then reset, one env step and the sampler alone (batched over the episodes)."""
+    jax.config.update("jax_compilation_cache_dir", args.compile_child)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    cfg, net, action_dim, pargs, inference, source = load_policy(args, task, kind, execution)
+    ev = Evaluator(task, cfg, action_dim, inference, max_steps=args.max_steps)
+    ro, e = ev._rollout, args.episodes
+    keys = jax.device_put(jax.random.split(eval_key(0), e))
+
+    def seconds(lower):
+        t0 = time.perf_counter()
+        lower().compile()
+        return time.perf_counter() - t0
+
+    out = {"policy_source": source, "rollout_s": seconds(lambda: ro._compacted.lower(keys, pargs, ro.block_for(e)))}
+    if pieces:
+        env = ev.env
+        states = jax.jit(jax.vmap(env.reset))(keys)
+        hist = jax.vmap(lambda o: init_history(o, cfg.chunk.obs_span))(states.obs)
+        actions = jnp.zeros((e, env.action_dim), jnp.float32)
+        decide = jax.vmap(make_decision_fn(net, cfg, action_dim, inference), in_axes=(0, 0, None))
+        out.update(reset_s=seconds(lambda: jax.jit(jax.vmap(env.reset)).lower(keys)),
+                   env_step_s=seconds(lambda: jax.jit(jax.vmap(env.step)).lower(states, actions)),
+                   sampler_s=seconds(lambda: jax.jit(decide).lower(hist, keys, pargs)))
+    return out
+
+
+def compile_cell(args, task: str, kind: str, execution: str) -> dict:
+    """Cold (empty cache, pieces too) and warm-cache compile of the cell's rollout, each in a fresh process."""
+    print(f"[{task} {kind} {execution}] compile", flush=True)
+    with tempfile.TemporaryDirectory() as cache:
+        runs = []
+        for _ in ("cold", "warm"):
+            cmd = [sys.executable, "-m", "benchmarks.profile_eval", "--compile-child", cache, "--tasks", task,
+                   "--cells", f"{kind}:{execution}", "--episodes", str(args.episodes), "--runs", args.runs,
+                   *(["--max-steps", str(args.max_steps)] if args.max_steps else []), *(["--quick"] if args.quick else [])]
+            proc = subprocess.run(cmd, capture_output=True, text=True, check=True)
+            runs.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    cold, warm = runs
+    row = {"task": task, "policy": kind, "execution": execution, "episodes": args.episodes,
+           "policy_source": cold["policy_source"], "cold_s": cold["rollout_s"], "warm_cache_s": warm["rollout_s"],
+           **{f"{k}_alone_s": cold[f"{k}_s"] for k in ("reset", "env_step", "sampler")}}
+    print(f"  rollout cold {row['cold_s']:.1f} s (reset {row['reset_alone_s']:.1f}, env step "
+          f"{row['env_step_alone_s']:.1f}, sampler {row['sampler_alone_s']:.1f} s alone), warm cache "
+          f"{row['warm_cache_s']:.1f} s", flush=True)
+    return row
+
+
 def compare_cell(args, task: str, kind: str, execution: str) -> dict:
     cfg, net, action_dim, pargs, inference, source = load_policy(args, task, kind, execution)
     e = args.episodes
@@ -304,17 +365,29 @@ def profile_table(rows: list[dict]) -> str:
 
 
 def compare_note(rows: list[dict]) -> str:
-    """The comparison's figures in words, every number from ``rows``."""
-    same = all(r["identical_outcomes"] for r in rows)
+    """The comparison's figures in words, every number from ``rows``. The sampler is ~100 % of a rollout (the
+    profile), so the compacted rollout gains about the sampler rows the vmapped one computes over those it computes
+    itself (``episode_decisions_old / episode_decisions_new``); skipped physics (finished episodes, AAC's early
+    exit) adds a little."""
+    def same(r, keys):
+        return all(r["old"][k] == r["new"][k] for k in keys)
+
+    outcome_rows = [r for r in rows if same(r, ("success", "steps"))]
+    differ = [f"{r['task']} {r['policy']} {r['execution']}" for r in rows if not same(r, ("success", "steps", "decisions"))]
     lines = [
         f"Old: the vmapped episode (`Rollout(compact=False)`); new: the compacted rollout (`compact=True`, the "
         f"Evaluator's default). Both compiled ahead of time, then run alternately (old first), "
         f"{rows[0]['episodes']} episodes from the campaign's first evaluation key; other jobs ran at nice 19 (load "
         f"average in the JSON's `machine`).",
         "",
-        "- Speedup (old s / new s): " + ", ".join(f"{r['task']} {r['policy']} {r['execution']} {r['speedup']:.2f}x "
-                                                  f"({r['old_s']:.0f} → {r['new_s']:.0f} s)" for r in rows) + ".",
-        f"- Per-episode success, steps and decisions identical in every cell: {same}.",
+        "- Speedup (old s / new s) against the ratio of sampler rows the two compute (old / new): "
+        + ", ".join(f"{r['task']} {r['policy']} {r['execution']} {r['speedup']:.2f}x of "
+                    f"{r['episode_decisions_old'] / r['episode_decisions_new']:.2f}x "
+                    f"({r['old_s']:.0f} → {r['new_s']:.0f} s)" for r in rows) + ".",
+        f"- Per-episode success and steps identical in {len(outcome_rows)} of {len(rows)} cells; success, steps "
+        f"and decisions in {len(rows) - len(differ)}"
+        + (f" (decisions differ: {', '.join(differ)}; blocks run the sampler at another batch size, whose float32 "
+           f"rounding differs in the last bits)." if differ else "."),
         f"- Cold compile old / new: {_span([r['old_compile_s'] for r in rows])} s / "
         f"{_span([r['new_compile_s'] for r in rows])} s.",
     ]
@@ -324,6 +397,20 @@ def compare_note(rows: list[dict]) -> str:
 def main(argv=None) -> dict:
     args = parse_args(argv)
     cells = [tuple(c.split(":")) for c in args.cells]
+    if args.compile_child is not None:  # one process of --compile: one cell, its figures on stdout's last line
+        (kind, execution), = cells
+        first = not os.listdir(args.compile_child)
+        print(json.dumps(compile_times(args, args.tasks[0], kind, execution, pieces=first)))
+        return {}
+    if args.compile:
+        rows = [compile_cell(args, task, kind, execution) for task in args.tasks for kind, execution in cells]
+        table = markdown_table(
+            ["task", "policy", "execution", "episodes", "rollout cold s", "reset alone s", "env step alone s",
+             "sampler alone s", "rollout warm cache s"],
+            [[r["task"], r["policy"], r["execution"], r["episodes"], r["cold_s"], r["reset_alone_s"],
+              r["env_step_alone_s"], r["sampler_alone_s"], r["warm_cache_s"]] for r in rows])
+        return report_rows(NAME + "_compile" + (f"_{args.tag}" if args.tag else ""), argv, args, rows, table,
+                           module=NAME)
     rows = []
     for task in args.tasks:
         for kind, execution in cells:
@@ -337,9 +424,9 @@ def main(argv=None) -> dict:
               f"{r['episode_decisions_old']} / {r['episode_decisions_new']}",
               f"{r['old_compile_s']:.1f} / {r['new_compile_s']:.1f}", r["identical_outcomes"]] for r in rows])
         return report_rows(NAME + "_compare" + (f"_{args.tag}" if args.tag else ""), argv, args, rows, table,
-                           note=compare_note(rows))
+                           module=NAME, note=compare_note(rows))
     return report_rows(NAME + (f"_{args.tag}" if args.tag else ""), argv, args, rows, profile_table(rows),
-                       note=profile_note(rows))
+                       module=NAME, note=profile_note(rows))
 
 
 if __name__ == "__main__":

@@ -37,7 +37,7 @@ from benchmarks.machine import machine_info
 import torch.nn.functional as F
 
 def torch_peaks(n: int = 2048, mbytes: int = 256, repeats: int = 5) -> dict:
-    """The machine peaks as ``benchmarks.machine.peaks`` measures them, in PyTorch (this script does not import
+    """The machine peaks as ``benchmarks.common.machine_peaks`` measures them, in PyTorch (this script does not import
     JAX): the best GFLOP/s of an n x n float32 matmul and GB/s of summing an ``mbytes`` MB float32 array."""
     a, b = torch.randn(n, n), torch.randn(n, n)
     big = torch.ones(mbytes * 2**20 // 4)

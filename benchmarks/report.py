@@ -27,6 +27,9 @@ SECTIONS = (("sampling", "One-call N-sample latency (the paper's sample-times ta
             ("profile_eval", "Evaluation profile: where one closed-loop evaluation's time goes"),
             ("profile_eval_compare_e100", "Compacted rollout vs the vmapped one, 100 episodes (interleaved, one run)"),
             ("profile_eval_compare_e20", "Compacted rollout vs the vmapped one, 20 episodes (interleaved, one run)"),
+            ("profile_eval_compile", "Rollout compile: cold, its pieces alone, and from the persistent cache"),
+            ("sampling_n1", "N = 1 against the weight-read bound (DP low-dim, paper size; campaigns paused)"),
+            ("small_matmul", "The N = 1 bound one kernel at a time: XLA's small-M dot against the read bandwidth"),
             ("tradeoff", "Latency–success trade-off"),
             ("delay", "Asynchronous execution: success under inference delay"),
             ("serving", "Policy serving: in-process, exported, websocket round trip"))

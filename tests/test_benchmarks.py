@@ -10,7 +10,14 @@ import os
 import pytest
 
 from hipolicy_jax import jsonio
-from benchmarks import convolutions, optimisation, rollout, sampling, tradeoff, train_step
+from benchmarks import convolutions, optimisation, rollout, sampling, small_matmul, tradeoff, train_step
+from benchmarks.machine import PEAKS_ENV
+
+
+@pytest.fixture(autouse=True)
+def _no_machine_peaks(monkeypatch):
+    """The smoke runs skip the machine peaks (2–4 s per JSON; tests/test_machine_info.py checks them)."""
+    monkeypatch.setenv(PEAKS_ENV, "0")
 
 
 def _load(out_dir, name):
@@ -387,3 +394,14 @@ def test_compute_dtype_benchmark(tmp_path):
     for r in rows:
         _finite(r, ["median_s", "speedup"])
         assert len(r["times_s"]) == r["rounds"] == 2
+
+
+def test_small_matmul_benchmark(tmp_path):
+    small_matmul.main(["--rows", "4", "--dtypes", "bfloat16", "--variants", "xla default", "--repeats", "1",
+                       "--out-dir", str(tmp_path)])
+    res = _load(tmp_path, "small_matmul")
+    assert len(res["rows"]) == 2 * len(small_matmul.SHAPES)  # two layouts per weight shape
+    for row in res["rows"]:
+        _finite(row, ["ms", "weight_gbs", "fraction_of_bandwidth"])
+        assert row["weight_mb"] == row["k"] * row["n"] * 2 / 2**20 and row["m"] == 4
+    assert res["best"][0]["dtype"] == "bfloat16" and res["bandwidth_gbs"]["xla default"] > 0

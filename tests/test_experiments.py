@@ -739,6 +739,8 @@ def test_cost_model_plans_evaluations_at_the_compacted_rollout_rate(tmp_path):
     model = CostModel(str(tmp_path / "external"), str(tmp_path / "runs"))
     assert model.eval_seconds("stack_cubes", "chunk") == 100.0 * 2
     assert model.eval_seconds("press_button", "chunk") == 30.0 * 2
+    # a Meta-World task's evaluations are read under its folder name (metaworld_basketball)
+    assert model.eval_seconds("metaworld_basketball", "chunk") == 100.0 * 2
 
 
 def test_deadline_starts_only_the_jobs_that_end_before_until():

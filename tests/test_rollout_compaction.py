@@ -107,3 +107,42 @@ def test_blocks_of_running_episodes_keep_every_outcome_aac():
 def test_blocks_of_running_episodes_keep_every_outcome(execution):
     (res_old, _), (res_new, _), _, _ = _run(execution, 2)
     _assert_same_outcomes(res_old, res_new)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("execution", ["chunk", "aac"])
+def test_hundred_episodes_of_a_trained_run(tmp_path, execution):
+    """A trained run (demos → 1,000 training steps of a tiny network, as ``experiments.train`` makes it) evaluated on
+    100 episodes with the campaigns' sampler (N = 16, DDIM 10: 1,600 sampler rows, so blocks of 10 episodes): the
+    vmapped rollout and the compacted one, from the campaign's first evaluation key. One block of every episode is
+    the vmapped rollout bit for bit; blocks of 10 run the sampler at another batch size, whose float32 rounding
+    differs in the last bits (≤ 1e-5 in the actions), so an episode at a knife's edge may go another way — at most
+    5 of 100, and the success rate within 5 points. A compaction that mixed up episodes, keys or policy state would
+    change most of them."""
+    from hipolicy_jax.config import EvalConfig, ModelConfig, PolicyConfig, TrainConfig
+    from hipolicy_jax.evaluation.evaluator import Evaluator
+    from hipolicy_jax.runs.store import eval_key, load_run
+    from hipolicy_jax.runs.train import RunConfig, main
+
+    inference = InferenceConfig(num_samples=16, sampler="ddim", num_steps=10, execution=execution)
+    main(RunConfig(task="latch_door", out=str(tmp_path / "run"), data=str(tmp_path / "demos.zarr"), episodes=20,
+                   policy=PolicyConfig(model=ModelConfig(size="tiny", fusion_heads=2)),
+                   train=TrainConfig(batch_size=32, num_steps=1000, warmup_steps=50, log_every=500, ckpt_every=1000),
+                   eval=EvalConfig(episodes=1, every=0), inference=inference, progress=False))
+    run = load_run(str(tmp_path / "run"))
+    p, key = run.policy, eval_key(0)
+    results = {}
+    for name, compact, block in (("vmapped", False, None), ("one block", True, 100), ("blocks", True, None)):
+        ev = Evaluator("latch_door", p.cfg, run.action_dim, inference, compact=compact)
+        ev._rollout.block = block
+        assert ev._rollout.block_for(100) == (None if not compact else block or 10)
+        results[name] = ev.rollout(p.params, p.normalizer, 100, key, entropy_guided=False)[0]  # highest frequency
+    old = results["vmapped"]
+    steps = np.asarray(old.steps)
+    assert float(old.success_rate) >= 0.05 and len(set(steps.tolist())) > 5, (old.success_rate, steps)
+    _assert_same_outcomes(old, results["one block"])
+    np.testing.assert_array_equal(np.asarray(results["one block"].entropy), np.asarray(old.entropy))
+    new = results["blocks"]
+    same = (np.asarray(new.success) == np.asarray(old.success)) & (np.asarray(new.steps) == steps)
+    assert same.sum() >= 95, np.flatnonzero(~same)
+    assert abs(float(new.success_rate) - float(old.success_rate)) <= 0.05

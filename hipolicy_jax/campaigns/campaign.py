@@ -433,14 +433,20 @@ class CostModel:
                 return float(np.median([v for v, _ in chosen]))
         return None
 
-    def train_seconds(self, cfg: RunConfig) -> float | None:
+    def _task_dir(self, cfg: RunConfig) -> tuple[str, str]:
+        """(task, observation type) as the run's folders name them (``metaworld_basketball`` for the task
+        ``metaworld:basketball``): the keys the records are read under."""
         parts = os.path.relpath(cfg.out_dir(), self.runs).split(os.sep)
-        task, obs = parts[-4], parts[-3]
+        return parts[-4], parts[-3]
+
+    def train_seconds(self, cfg: RunConfig) -> float | None:
+        task, obs = self._task_dir(cfg)
         key = training_key(config_to_dict(cfg.policy), cfg.train.batch_size)
         per_step = self._median(self._train, (task, obs, key), (None, obs, key), (None, obs, None))
         return None if per_step is None else per_step * cfg.train.num_steps
 
     def eval_seconds(self, task: str, execution: str) -> float | None:
+        """``task``: its folder name (``_task_dir``)."""
         return self._median(self._eval, (task, execution), (task, None), (None, None))
 
     def estimate(self, camp: Campaign, jobs: list[Job]) -> list[dict]:
@@ -455,7 +461,7 @@ class CostModel:
             evaluation = (cfg.out_dir(), camp._key(job.col, job.seed)[1])  # another table's column may share it
             seconds = 0.0
             if not done and evaluation not in evaluated:
-                parts = [self.eval_seconds(job.task, job.col.execution)]
+                parts = [self.eval_seconds(self._task_dir(cfg)[0], job.col.execution)]
                 parts += [self.train_seconds(cfg)] if needs_train else []
                 seconds = None if None in parts else sum(parts)
             evaluated.add(evaluation)
