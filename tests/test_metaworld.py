@@ -278,7 +278,7 @@ def test_external_summary_and_dp3_metric():
 
 @needs_venv
 @pytest.mark.slow
-def test_metaworld_campaign_end_to_end(tmp_path):
+def test_metaworld_campaign_end_to_end(tmp_path, monkeypatch):
     """The Meta-World campaign stage (smoke budget): the pilot collects demos through the bridge, trains DP and
     evaluates its final network and its kept checkpoint through the served policy; the main table trains and
     evaluates all four columns (state and point clouds) with periodic evaluations for DP3's metric, one record per
@@ -288,7 +288,10 @@ def test_metaworld_campaign_end_to_end(tmp_path):
     flags = ["--budget", "smoke", "--tasks", "assembly", "--runs", str(tmp_path / "runs"), "--data",
              str(tmp_path / "data"), "--records", str(tmp_path / "rec"), "--results", str(tmp_path / "res"),
              "--episodes", "2", "--no-progress"]
-    md = metaworld(parse_args(["pilot", *flags, "--pointcloud-train-s-per-step", "3", "--camera-ms-per-frame", "25"]))
+    # a budget far above what a smoke pilot costs on any machine: every task carries both column pairs
+    big = ["--budget-hours", "100000"]
+    md = metaworld(parse_args(["pilot", *flags, *big, "--pointcloud-train-s-per-step", "3", "--camera-ms-per-frame",
+                               "25"]))
     rec = json.loads((tmp_path / "rec" / "smoke" / "metaworld_assembly" / "state" / "dp_ckptevery6" /
                       "seed0.json").read_text())
     (ev,) = rec["evaluations"].values()
@@ -304,11 +307,11 @@ def test_metaworld_campaign_end_to_end(tmp_path):
     assert "python -m experiments.metaworld pilot" in text
     choice = json.loads((tmp_path / "res" / "pilot_choice.json").read_text())
     assert choice["T"] in (6, 12) and choice["costs"][0]["train_cpu_s_per_step"] > 0
-    rules = choice["budget_rules"]  # a smoke pilot costs nothing: every task carries both column pairs
+    rules = choice["budget_rules"]
     assert rules["state_tasks"] == 16 and rules["pointcloud_tasks"] == 16 and rules["steps"] == choice["T"]
     assert "state columns on the first **16** tasks" in text
-    again = metaworld(parse_args(["pilot", *flags, "--pointcloud-train-s-per-step", "3", "--camera-ms-per-frame", "25",
-                                  "--from-records"]))
+    again = metaworld(parse_args(["pilot", *flags, *big, "--pointcloud-train-s-per-step", "3", "--camera-ms-per-frame",
+                                  "25", "--from-records"]))
     assert open(again).read().split("| Task")[1] == text.split("| Task")[1]
 
     # the main table: its own runs (the pilot's are not table runs), the demos reused
@@ -331,6 +334,22 @@ def test_metaworld_campaign_end_to_end(tmp_path):
     assert hip["policy"]["encoder"]["obs_type"] == "pointcloud" and hip["policy"]["chunk"]["strides"] != [1]
     assert metaworld(parse_args(["main", *main_flags, "--from-records"])) == md
     assert open(md).read().split("| Task")[1:] == text.split("| Task")[1:]
+
+    # every evaluation was kept in its run dir as it finished: with the record lost (a campaign stopped before
+    # writing it), the campaign makes it again from what was kept, without running an episode
+    from hipolicy_jax.runs import external
+
+    run_dir = tmp_path / "runs" / "smoke" / "metaworld_assembly" / "pointcloud" / "hipolicy" / "seed0"
+    assert len(list((run_dir / "external_eval").glob("step*.json"))) == 3  # the final network, 2 periodic
+    lost = tmp_path / "rec" / "smoke" / "metaworld_assembly" / "pointcloud" / "hipolicy" / "seed0.json"
+    lost.unlink()
+    monkeypatch.setattr(external, "_run", lambda *a, **k: pytest.fail(f"ran the bridge again: {a}"))
+    metaworld(parse_args(["main", *main_flags]))
+    again = json.loads(lost.read_text())
+    (old,), (new,) = hip["evaluations"].values(), again["evaluations"].values()
+    for k in ("success", "steps", "decisions", "first_seed", "eval_s", "dp3_metric"):
+        assert new[k] == old[k], k
+    assert new["periodic"]["checkpoints"] == old["periodic"]["checkpoints"]
 
 
 def test_metaworld_budget_rules_by_hand():

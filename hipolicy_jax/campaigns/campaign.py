@@ -256,16 +256,16 @@ class Campaign:
         thresholds = (None if m == 1 else calibration.resolve_thresholds(
             self.inference, m, calibration.read_calibration(run.run_dir))[0])
         max_steps = envs.episode_limit(run.task)
-        t0 = time.perf_counter()
         first = EXTERNAL_EVAL_SEED + 1000 * seed
+        # kept in the run dir as they finish: an interrupted evaluation resumes at the next checkpoint's
         rec = evaluate_run(run.run_dir, episodes=self.episodes, first_seed=first, max_steps=max_steps,
-                           inference=inference)
+                           inference=inference, keep=True)
         evaluation = {"settings": json.loads(key), **external_summary(rec),
                       "thresholds": None if thresholds is None else [float(t) for t in thresholds],
                       "success": [bool(e["success"]) for e in rec["per_episode"]],
                       "steps": [int(e["steps"]) for e in rec["per_episode"]],
                       "decisions": [int(e["decisions"]) for e in rec["per_episode"]],
-                      "first_seed": first, "max_steps": max_steps, "eval_s": time.perf_counter() - t0,
+                      "first_seed": first, "max_steps": max_steps, "eval_s": rec["wall_s"],
                       "cpu_cores": cpu_cores(), "timing": rec["seconds"]}
         b = BUDGETS[self.budget]
         periodic = periodic or (Periodic(b.periodic_episodes, EXTERNAL_PERIODIC_SEED) if b.periodic_episodes
@@ -276,15 +276,14 @@ class Campaign:
             for step in checkpoint_steps(run.run_dir):  # the periodic ones (not step 1's nor an interrupt's)
                 if step % every or (periodic.steps is not None and step not in periodic.steps):
                     continue
-                t0 = time.perf_counter()
                 first = periodic.seed_base + 1000 * seed
                 r = evaluate_run(run.run_dir, episodes=periodic.episodes, first_seed=first, max_steps=max_steps,
-                                 inference=inference, step=step)
+                                 inference=inference, step=step, keep=True)
                 rows.append({"step": step, "params_sha256": r["params_sha256"], "first_seed": first,
                              "success_rate": r["success_rate"],
                              "success": [bool(e["success"]) for e in r["per_episode"]],
                              "steps": [int(e["steps"]) for e in r["per_episode"]],
-                             "eval_s": time.perf_counter() - t0, "cpu_cores": cpu_cores()})
+                             "eval_s": r["wall_s"], "cpu_cores": cpu_cores()})
             evaluation["periodic"] = {"episodes": periodic.episodes, "seed_base": periodic.seed_base,
                                       "note": "other networks of this run (its kept checkpoints, at the final "
                                               "network's thresholds): DP3's metric only", "checkpoints": rows}

@@ -7,10 +7,14 @@ bridge runs the episodes against it. Nothing here imports the simulator.
 
 ``evaluate_run`` returns the bridge's record (``metaworld_bridge.evaluate``): per episode ``seed``, ``success``,
 ``steps``, ``decisions``, ``strides`` (counts), ``mean_entropy``, plus the policy's manifest entries and timings.
+With ``keep`` it also keeps the record in the run dir (``external_eval/``), keyed by checkpoint and settings, and a
+later call with the same network (its parameters' fingerprint) and settings returns it without running a single
+episode: a campaign that stops halfway through a run's evaluations resumes where it stopped.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shlex
@@ -58,19 +62,39 @@ def collect_demos(name: str, episodes: int, path: str, *, num_points: int | None
     return line
 
 
+def kept_path(run_dir: str, step: int, settings: dict) -> str:
+    """Where ``evaluate_run(keep=True)`` keeps the record of checkpoint ``step`` under ``settings``."""
+    digest = hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
+    return os.path.join(run_dir, "external_eval", f"step{step}_{digest}.json")
+
+
 def evaluate_run(run_dir: str, *, episodes: int, first_seed: int, max_steps: int, step: int | None = None,
                  inference: InferenceConfig | None = None, envs: int = 8, timeout: float | None = None,
-                 log=print) -> dict:
+                 keep: bool = False, log=print) -> dict:
     """Serve the run at ``run_dir`` (checkpoint ``step``, default the latest; its stored inference settings unless
     ``inference``) and evaluate it on ``episodes`` episodes of its task from initial-state seeds ``first_seed``, ...
-    with its bridge, ``envs`` at a time; → the bridge's record plus ``checkpoint_step`` and the network's
-    ``params_sha256`` (``records.params_fingerprint``)."""
+    with its bridge, ``envs`` at a time; → the bridge's record plus ``checkpoint_step``, the network's
+    ``params_sha256`` (``records.params_fingerprint``), ``wall_s`` (serving and episodes) and ``reused`` (True:
+    the record ``keep`` kept from an earlier call with the same network and settings; its ``wall_s`` is that
+    call's)."""
     from hipolicy_jax.runs.serve import run_backend
     from hipolicy_jax.deploy.server import PolicyServer, ServerConfig
 
+    t0 = time.perf_counter()
     backend = run_backend(run_dir, inference, step)
     name = backend.metadata["task"]
     external.check_name(name)
+    fingerprint = params_fingerprint(backend._args.params)
+    settings = {"episodes": episodes, "first_seed": first_seed, "max_steps": max_steps,
+                "inference": backend.metadata.get("inference"), "thresholds": backend.metadata.get("thresholds")}
+    path = kept_path(run_dir, backend.metadata.get("checkpoint_step"), settings) if keep else None
+    if path is not None and os.path.exists(path):
+        with open(path) as f:
+            kept = json.load(f)
+        if kept.get("params_sha256") == fingerprint and kept.get("settings") == settings:
+            log(f"[external] {name} step {kept['checkpoint_step']}: {kept['successes']}/{kept['episodes']} success "
+                f"(kept in {os.path.relpath(path)})")
+            return {**kept, "reused": True}
     check_bridge(name)
     suite = external.SUITES[name.partition(":")[0]]
     envs = max(1, min(envs, episodes))
@@ -88,10 +112,17 @@ def evaluate_run(run_dir: str, *, episodes: int, first_seed: int, max_steps: int
     finally:
         server.stop()
     record["checkpoint_step"] = backend.metadata.get("checkpoint_step")
-    record["params_sha256"] = params_fingerprint(backend._args.params)
+    record["params_sha256"] = fingerprint
+    record["wall_s"] = time.perf_counter() - t0
+    if path is not None:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with open(path + ".tmp", "w") as f:
+            json.dump({**record, "settings": settings}, f)
+        os.replace(path + ".tmp", path)
+    record["reused"] = False
     log(f"[external] {name} step {record['checkpoint_step']}: {record['successes']}/{record['episodes']} success "
         f"({record['seconds']['total']:.0f} s)")
     return record
 
 
-__all__ = ["check_bridge", "collect_demos", "evaluate_run"]
+__all__ = ["check_bridge", "collect_demos", "evaluate_run", "kept_path"]
