@@ -26,6 +26,8 @@ SECTIONS = (("sampling", "One-call N-sample latency (the paper's sample-times ta
             ("rollout", "Closed-loop rollout throughput (MJX, policy in the loop)"),
             ("profile_eval", "Evaluation profile: where one closed-loop evaluation's time goes"),
             ("profile_eval_compare_e100", "Compacted rollout vs the vmapped one, 100 episodes (interleaved, one run)"),
+            ("profile_eval_compare_e100_hipolicy", "Compacted rollout vs the vmapped one: a cpu-budget HiPolicy run, "
+                                                   "100 episodes"),
             ("profile_eval_compare_e20", "Compacted rollout vs the vmapped one, 20 episodes (interleaved, one run)"),
             ("profile_eval_compile", "Rollout compile: cold, its pieces alone, and from the persistent cache"),
             ("sampling_n1", "N = 1 against the weight-read bound (DP low-dim, paper size; campaigns paused)"),
