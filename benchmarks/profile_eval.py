@@ -28,7 +28,8 @@ alternately (``--rounds`` times each, old first), and their per-episode success,
 compared (they must be identical). Env steps/s counts the control steps the episodes executed.
 
 **Compile** (``--compile``): per cell, a fresh process with an empty persistent compilation cache compiles the
-Evaluator's rollout (cold), then reset, one env step and the sampler alone (what the rollout's compile is made of);
+Evaluator's rollout (cold), then reset, one env step and the sampler alone (in the same process, after the rollout:
+they understate a cold compile of each piece, the reset most);
 a second fresh process on the same cache compiles the rollout again (warm: what a campaign's next run of the same
 shapes pays, ``runs.cli.enable_compilation_cache``).
 """
