@@ -247,7 +247,11 @@ class MjxEnv:
         data = mjx.make_data(self.mjx_model)
         ctrl = jnp.concatenate([hand, jnp.full((2,), FINGER_OPEN)])
         data = data.replace(qpos=qpos, ctrl=ctrl)
-        data = mjx.forward(model, data)
+        # Kinematics only (body, geom and site poses, which the observation reads): the first ``step`` runs the full
+        # forward dynamics again from qpos, qvel and ctrl, and nothing else a forward pass writes is read before
+        # that (the solver's warm start is written by the step alone). A full ``mjx.forward`` here would put a
+        # second copy of collision and the constraint solver into every rollout's program.
+        data = mjx.kinematics(model, data)
         info = dict(info, rng=k_rng)
         obs = self._observe(model, data, info)
         zero = jnp.zeros((), jnp.float32)
