@@ -78,6 +78,9 @@ def parse_args(argv=None):
     p.add_argument("--rounds", type=int, default=1, help="--compare: timed rollouts per path (after the compile)")
     p.add_argument("--compile", action="store_true", help="cold and warm-cache compile times of the rollout")
     p.add_argument("--compile-child", default=None, help=argparse.SUPPRESS)  # cache dir of a --compile process
+    p.add_argument("--full-forward-reset", action="store_true",
+                   help="--compile: also compile the rollout as it was before the kinematic reset (the reset runs "
+                        "the full mjx.forward), cold and warm, interleaved with today's")
     p.add_argument("--block", type=int, default=None, help="--compare: episodes per block (default: the Evaluator's)")
     p.add_argument("--max-steps", type=int, default=None, help="cap the episodes (default: the task's limit)")
     p.add_argument("--tag", default="", help="appended to the JSON's name (profile_eval[_compare][_TAG]_<device>)")
@@ -227,6 +230,9 @@ def compile_times(args, task: str, kind: str, execution: str, pieces: bool) -> d
     ``pieces`` then reset, one env step and the sampler alone (batched over the episodes)."""
     jax.config.update("jax_compilation_cache_dir", args.compile_child)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    if args.full_forward_reset:  # this child process only: the reset as before 711be2f (a full forward pass)
+        from mujoco import mjx
+        mjx.kinematics = mjx.forward
     cfg, net, action_dim, pargs, inference, source = load_policy(args, task, kind, execution)
     ev = Evaluator(task, cfg, action_dim, inference, max_steps=args.max_steps)
     ro, e = ev._rollout, args.episodes
@@ -251,23 +257,38 @@ def compile_times(args, task: str, kind: str, execution: str, pieces: bool) -> d
 
 
 def compile_cell(args, task: str, kind: str, execution: str) -> dict:
-    """Cold (empty cache, pieces too) and warm-cache compile of the cell's rollout, each in a fresh process."""
+    """Cold (empty cache, pieces too) and warm-cache compile of the cell's rollout, each in a fresh process; with
+    ``--full-forward-reset`` the same for the rollout whose reset runs the full forward dynamics (before), today's
+    and before's processes alternating."""
     print(f"[{task} {kind} {execution}] compile", flush=True)
-    with tempfile.TemporaryDirectory() as cache:
-        runs = []
-        for _ in ("cold", "warm"):
-            cmd = [sys.executable, "-m", "benchmarks.profile_eval", "--compile-child", cache, "--tasks", task,
-                   "--cells", f"{kind}:{execution}", "--episodes", str(args.episodes), "--runs", args.runs,
-                   *(["--max-steps", str(args.max_steps)] if args.max_steps else []), *(["--quick"] if args.quick else [])]
-            proc = subprocess.run(cmd, capture_output=True, text=True, check=True)
-            runs.append(json.loads(proc.stdout.strip().splitlines()[-1]))
-    cold, warm = runs
+    variants = ("after", "before") if args.full_forward_reset else ("after",)
+    out = {}
+    with tempfile.TemporaryDirectory() as root:
+        caches = {v: os.path.join(root, v) for v in variants}
+        for cache in caches.values():
+            os.makedirs(cache)
+        for stage in ("cold", "warm"):
+            for variant in variants:
+                cmd = [sys.executable, "-m", "benchmarks.profile_eval", "--compile-child", caches[variant], "--tasks",
+                       task, "--cells", f"{kind}:{execution}", "--episodes", str(args.episodes), "--runs", args.runs,
+                       *(["--max-steps", str(args.max_steps)] if args.max_steps else []),
+                       *(["--quick"] if args.quick else []),
+                       *(["--full-forward-reset"] if variant == "before" else [])]
+                proc = subprocess.run(cmd, capture_output=True, text=True, check=True)
+                out[variant, stage] = json.loads(proc.stdout.strip().splitlines()[-1])
+    cold = out["after", "cold"]
     row = {"task": task, "policy": kind, "execution": execution, "episodes": args.episodes,
-           "policy_source": cold["policy_source"], "cold_s": cold["rollout_s"], "warm_cache_s": warm["rollout_s"],
+           "policy_source": cold["policy_source"], "cold_s": cold["rollout_s"],
+           "warm_cache_s": out["after", "warm"]["rollout_s"],
            **{f"{k}_alone_s": cold[f"{k}_s"] for k in ("reset", "env_step", "sampler")}}
+    if args.full_forward_reset:
+        row.update(before_cold_s=out["before", "cold"]["rollout_s"], before_warm_cache_s=out["before", "warm"]["rollout_s"],
+                   before_reset_alone_s=out["before", "cold"]["reset_s"])
     print(f"  rollout cold {row['cold_s']:.1f} s (reset {row['reset_alone_s']:.1f}, env step "
           f"{row['env_step_alone_s']:.1f}, sampler {row['sampler_alone_s']:.1f} s alone), warm cache "
-          f"{row['warm_cache_s']:.1f} s", flush=True)
+          f"{row['warm_cache_s']:.1f} s" + (f"; before: cold {row['before_cold_s']:.1f} s, warm cache "
+                                            f"{row['before_warm_cache_s']:.1f} s" if args.full_forward_reset else ""),
+          flush=True)
     return row
 
 
@@ -405,11 +426,15 @@ def main(argv=None) -> dict:
         return {}
     if args.compile:
         rows = [compile_cell(args, task, kind, execution) for task in args.tasks for kind, execution in cells]
+        before = args.full_forward_reset
         table = markdown_table(
             ["task", "policy", "execution", "episodes", "rollout cold s", "reset alone s", "env step alone s",
-             "sampler alone s", "rollout warm cache s"],
+             "sampler alone s", "rollout warm cache s"]
+            + (["before: cold s", "before: reset alone s", "before: warm cache s"] if before else []),
             [[r["task"], r["policy"], r["execution"], r["episodes"], r["cold_s"], r["reset_alone_s"],
-              r["env_step_alone_s"], r["sampler_alone_s"], r["warm_cache_s"]] for r in rows])
+              r["env_step_alone_s"], r["sampler_alone_s"], r["warm_cache_s"]]
+             + ([r["before_cold_s"], r["before_reset_alone_s"], r["before_warm_cache_s"]] if before else [])
+             for r in rows])
         return report_rows(NAME + "_compile" + (f"_{args.tag}" if args.tag else ""), argv, args, rows, table,
                            module=NAME)
     rows = []

@@ -23,7 +23,11 @@ def test_profile_and_compare_write_finite_json(tmp_path):
     assert row["block"] == 2 and row["identical_outcomes"] and row["old"] == row["new"]
     assert row["speedup"] > 0 and math.isfinite(row["new_compile_s"]) and "machine" in res
     assert "identical in 1 of 1 cells; success, steps and decisions in 1." in res["note"]
-    profile_eval.main(["--quick", "--compile", "--cells", "dp:chunk", "--out-dir", str(tmp_path)])
-    (row,) = jsonio.load(str(tmp_path / "profile_eval_compile_cpu.json"))["rows"]
-    for k in ("cold_s", "warm_cache_s", "reset_alone_s", "env_step_alone_s", "sampler_alone_s"):
+    profile_eval.main(["--quick", "--compile", "--full-forward-reset", "--cells", "dp:chunk", "--out-dir",
+                       str(tmp_path)])
+    res = jsonio.load(str(tmp_path / "profile_eval_compile_cpu.json"))
+    (row,) = res["rows"]
+    for k in ("cold_s", "warm_cache_s", "reset_alone_s", "env_step_alone_s", "sampler_alone_s", "before_cold_s",
+              "before_warm_cache_s", "before_reset_alone_s"):
         assert math.isfinite(row[k]) and row[k] > 0, k
+    assert "before: cold s" in res["table_md"]
