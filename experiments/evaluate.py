@@ -18,6 +18,11 @@ evaluation ``experiments.train`` reported (same settings, same initial states). 
   background bands and the thresholds as lines (the paper's entropy curve);
 - ``rollout.mp4`` (``rollout.gif`` without ffmpeg): the first successful episode (else the first), annotated with
   the stride and entropy of the chunk being executed.
+
+A run of an external task (``metaworld:<task>``) is evaluated in its own simulator through the policy server
+(``runs.external.evaluate_report``; its venv: ``bash scripts/setup_metaworld.sh``): the same two passes, on
+initial-state seeds 1,000,000 + 1000·seed + i (the Meta-World campaign's episodes of that training seed), and
+``eval.json`` only.
 """
 
 from __future__ import annotations
@@ -27,8 +32,10 @@ import os
 from typing import Literal
 
 from hipolicy_jax.config import InferenceConfig
+from hipolicy_jax.envs.external import is_external
 from hipolicy_jax.runs.cli import enable_compilation_cache, run_main
 from hipolicy_jax.runs.evaluate import evaluate_run
+from hipolicy_jax.runs.external import evaluate_report
 from hipolicy_jax.runs.store import load_run, with_compute_dtype
 
 
@@ -62,8 +69,27 @@ def _timed_line(name: str, t: dict) -> str:
     return (f"  timed phase, {name}: {t['reached']:.0%} of episodes hold it {t['required_steps']} steps; {by}")
 
 
+def main_external(args: EvaluateArgs, run) -> dict:
+    if args.compute_dtype != "run":
+        raise ValueError(f"compute_dtype: {run.task} runs are served as trained, got {args.compute_dtype!r}")
+    seed = run.seed if args.seed is None else args.seed
+    report = evaluate_report(run.run_dir, args.inference, episodes=args.episodes, seed=seed, step=args.step,
+                             out=args.out)
+    print(f"{run.task} @ step {report['checkpoint_step']}, {args.episodes} episodes (initial-state seeds "
+          f"{report['seeds'][0]}...), N={args.inference.num_samples}, thresholds from {report['thresholds_source']}: "
+          f"{[round(t, 3) for t in report['thresholds']]}")
+    print(_line("with entropy-guided execution", report["with_eg"]))
+    print(_line("without (always stride 1)", report["without_eg"]))
+    print(f"outputs in {args.out or os.path.join(run.run_dir, 'eval')}: eval.json (episodes run in the task's own "
+          f"simulator through the policy server: no video or entropy plot)")
+    return report
+
+
 def main(args: EvaluateArgs) -> dict:
-    run = with_compute_dtype(load_run(args.checkpoint, args.step), args.compute_dtype)
+    run = load_run(args.checkpoint, args.step)
+    if is_external(run.task):
+        return main_external(args, run)
+    run = with_compute_dtype(run, args.compute_dtype)
     seed = run.seed if args.seed is None else args.seed
     report = evaluate_run(run, args.inference, episodes=args.episodes, seed=seed, out=args.out,
                           trace_episodes=args.trace_episodes, video_format=args.video,

@@ -18,6 +18,7 @@ from hipolicy_jax import envs
 from hipolicy_jax.config import EncoderConfig, InferenceConfig, ModelConfig, PolicyConfig, TrainConfig
 from hipolicy_jax.data.replay_buffer import ReplayBuffer
 from hipolicy_jax.envs import external
+from hipolicy_jax.runs.store import read_inference
 from hipolicy_jax.runs.train import RunConfig, main
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -194,8 +195,11 @@ def test_external_task_errors_name_the_fix(demos, tmp_path):
 
 
 def test_external_task_config(tmp_path):
-    with pytest.raises(ValueError, match="pass --eval.every 0 --no-final-eval"):
-        RunConfig(task="metaworld:assembly")
+    cfg = RunConfig(task="metaworld:assembly")  # no MJX env: training evaluates nothing, by default
+    assert cfg.eval.every == 0 and not cfg.final_eval
+    assert dataclasses.replace(cfg, episodes=7).eval.every == 0  # stable under replace
+    with pytest.raises(ValueError, match="eval.every: metaworld:assembly has no MJX env.*experiments.evaluate"):
+        RunConfig(task="metaworld:assembly", eval=dataclasses.replace(RunConfig().eval, every=500))
     with pytest.raises(ValueError, match="or an external task"):
         RunConfig(task="assembly")
     with pytest.raises(ValueError, match="needs a task name"):
@@ -350,6 +354,22 @@ def test_metaworld_campaign_end_to_end(tmp_path, monkeypatch):
     for k in ("success", "steps", "decisions", "first_seed", "eval_s", "dp3_metric"):
         assert new[k] == old[k], k
     assert new["periodic"]["checkpoints"] == old["periodic"]["checkpoints"]
+
+    # experiments.evaluate on the same run: its guided pass is the campaign's evaluation of seed 0 (kept, reused);
+    # the pass without entropy guidance runs the bridge and decides at stride 1 only
+    monkeypatch.undo()
+    from experiments.evaluate import EvaluateArgs, main as evaluate
+
+    inference = read_inference(str(run_dir))
+    report = evaluate(EvaluateArgs(checkpoint=str(run_dir), episodes=2, inference=inference, out=str(tmp_path / "ev")))
+    assert report["seeds"] == [1_000_000, 1_000_001] and report["params_sha256"] == hip["network"]["params_sha256"]
+    assert report["with_eg"]["success"] == old["success"] and report["with_eg"]["steps"] == old["steps"]
+    assert report["without_eg"]["stride1_frac"] == 1.0 and len(report["without_eg"]["steps"]) == 2
+    assert report["reused"] == {"with_eg": True, "without_eg": False}
+    written = json.loads((tmp_path / "ev" / "eval.json").read_text())["without_eg"]
+    assert [written[k] for k in ("success", "steps", "decisions")] == [report["without_eg"][k] for k in
+                                                                      ("success", "steps", "decisions")]
+    assert len(list((run_dir / "external_eval").glob("step*.json"))) == 4  # the unguided pass, kept too
 
 
 def test_metaworld_budget_rules_by_hand():

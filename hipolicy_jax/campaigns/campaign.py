@@ -38,10 +38,10 @@ from hipolicy_jax.runs.store import Run, eval_key, make_evaluator, read_json, wr
 from hipolicy_jax.runs.train import RunConfig, cpu_cores, ensure_trained, finished, prepare_out_dir
 
 RECORD_VERSION = rec_lib.RECORD_VERSION
-# External tasks (results/metaworld/PROTOCOL.md): training seed k's main episodes start from initial-state seeds
-# EXTERNAL_EVAL_SEED + 1000 k + i, its periodic (DP3-metric) episodes from EXTERNAL_PERIODIC_SEED + 1000 k + i.
-EXTERNAL_EVAL_SEED = 1_000_000
-EXTERNAL_PERIODIC_SEED = 2_000_000
+# External tasks' initial states (``envs.external``): seed k's main episodes from EXTERNAL_EVAL_SEED + 1000 k + i,
+# its periodic (DP3-metric) episodes from EXTERNAL_PERIODIC_SEED + 1000 k + i.
+EXTERNAL_EVAL_SEED = envs.external.EVAL_SEED
+EXTERNAL_PERIODIC_SEED = envs.external.PERIODIC_SEED
 DP3_METRIC_BEST = 5  # DP3's metric: the mean of the 5 best periodic evaluations
 
 

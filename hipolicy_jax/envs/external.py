@@ -45,6 +45,11 @@ SUITES: dict[str, ExternalSuite] = {
                                eval_max_steps=200),  # DP3's episode length (results/metaworld/PROTOCOL.md)
 }
 
+# Initial states of evaluations (results/metaworld/PROTOCOL.md): training seed k's main episodes start from
+# initial-state seeds EVAL_SEED + 1000 k + i, its periodic (DP3-metric) episodes from PERIODIC_SEED + 1000 k + i.
+EVAL_SEED = 1_000_000
+PERIODIC_SEED = 2_000_000
+
 _TASK_RE = re.compile(r"^[a-z0-9][a-z0-9_-]*$")
 
 

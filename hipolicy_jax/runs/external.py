@@ -5,6 +5,9 @@ Both run the suite's bridge as a subprocess (``ExternalSuite.collect`` / ``.eval
 policy here with the project's server (``deploy``, on a free localhost port, batches of up to ``envs``) while the
 bridge runs the episodes against it. Nothing here imports the simulator.
 
+``evaluate_report`` is ``experiments.evaluate`` for such a run: the run's own execution and the same episodes
+without entropy guidance, summarised like an MJX evaluation and written to ``eval.json``.
+
 ``evaluate_run`` returns the bridge's record (``metaworld_bridge.evaluate``): per episode ``seed``, ``success``,
 ``steps``, ``decisions``, ``strides`` (counts), ``mean_entropy``, plus the policy's manifest entries and timings.
 With ``keep`` it also keeps the record in the run dir (``external_eval/``), keyed by checkpoint and settings, and a
@@ -14,6 +17,7 @@ episode: a campaign that stops halfway through a run's evaluations resumes where
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -125,4 +129,58 @@ def evaluate_run(run_dir: str, *, episodes: int, first_seed: int, max_steps: int
     return record
 
 
-__all__ = ["check_bridge", "collect_demos", "evaluate_run", "kept_path"]
+def bridge_summary(record: dict, strides: list[int]) -> dict:
+    """An MJX evaluation's summary (``eval_summary``'s keys) of a bridge record: success rate, mean steps (all and
+    successful episodes; NaN when none), the fraction of decisions at each of ``strides`` (``stride{s}_frac``), and
+    per episode ``success`` / ``steps`` / ``decisions``."""
+    eps = record["per_episode"]
+    steps = [int(e["steps"]) for e in eps]
+    ok = [int(e["steps"]) for e in eps if e["success"]]
+    counts = {s: sum(int(e["strides"].get(str(s), 0)) for e in eps) for s in strides}
+    total = max(1, sum(counts.values()))
+    return {"success_rate": sum(bool(e["success"]) for e in eps) / max(1, len(eps)),
+            "mean_steps": sum(steps) / max(1, len(steps)),
+            "mean_steps_success": sum(ok) / len(ok) if ok else float("nan"),
+            **{f"stride{s}_frac": c / total for s, c in counts.items()},
+            "success": [bool(e["success"]) for e in eps], "steps": steps,
+            "decisions": [int(e["decisions"]) for e in eps]}
+
+
+def evaluate_report(run_dir: str, inference: InferenceConfig, *, episodes: int, seed: int, step: int | None = None,
+                    out: str = "", envs: int = 8, log=print) -> dict:
+    """``experiments.evaluate`` of an external task's run: ``episodes`` episodes from initial-state seeds
+    ``EVAL_SEED + 1000 seed + i`` (a campaign's evaluation of training seed ``seed``), served with ``inference``,
+    once with entropy-guided execution and once always at stride 1 (skipped for a single-stride policy: the same
+    run); both kept in the run dir (``evaluate_run(keep=True)``). Writes ``eval.json`` into ``out`` (default
+    ``run_dir/eval``) and returns it: ``with_eg`` / ``without_eg`` (``bridge_summary``), the network's fingerprint,
+    the checkpoint step, the initial-state seeds, the settings and ``reused`` (per pass: kept from an earlier
+    evaluation of the same network and settings, e.g. a campaign's)."""
+    from hipolicy_jax.evaluation import calibration
+    from hipolicy_jax.runs.store import load_run, write_json
+
+    run = load_run(run_dir, step)
+    external.check_name(run.task)
+    suite = external.SUITES[run.task.partition(":")[0]]
+    first = external.EVAL_SEED + 1000 * int(seed)
+    strides = [int(s) for s in run.policy.cfg.chunk.strides]
+    thresholds, source = calibration.resolve_thresholds(inference, run.policy.cfg.chunk.num_freqs,
+                                                        calibration.read_calibration(run.run_dir))
+    common = dict(episodes=episodes, first_seed=first, max_steps=suite.eval_max_steps, step=run.policy.step,
+                  envs=envs, keep=True, log=log)
+    guided = evaluate_run(run.run_dir, inference=inference, **common)
+    plain = (guided if len(strides) == 1 else
+             evaluate_run(run.run_dir, inference=dataclasses.replace(inference, entropy_guided=False), **common))
+    report = {"task": run.task, "checkpoint_step": guided["checkpoint_step"],
+              "params_sha256": guided["params_sha256"], "episodes": episodes,
+              "seeds": [first + i for i in range(episodes)], "max_steps": suite.eval_max_steps,
+              "inference": dataclasses.asdict(inference), "thresholds": [float(t) for t in thresholds], "thresholds_source": source,
+              "with_eg": bridge_summary(guided, strides), "without_eg": bridge_summary(plain, strides),
+              "wall_s": guided["wall_s"] + (0.0 if plain is guided else plain["wall_s"]),
+              "reused": {"with_eg": guided["reused"], "without_eg": plain["reused"]}}
+    out = out or os.path.join(run.run_dir, "eval")
+    os.makedirs(out, exist_ok=True)
+    write_json(os.path.join(out, "eval.json"), report)
+    return report
+
+
+__all__ = ["bridge_summary", "check_bridge", "collect_demos", "evaluate_report", "evaluate_run", "kept_path"]

@@ -6,8 +6,9 @@ evaluation → calibration → outputs in the run directory.
 trains only what is unfinished. One ``Evaluator`` serves every evaluation of the run (one compile).
 
 An external task (``--task metaworld:assembly``, ``envs.external``) trains on demos collected in its own venv
-(``--data``, default ``data/metaworld_assembly_<episodes>.zarr``), which must exist; it has no MJX env, so it runs
-with ``--eval.every 0 --no-final-eval`` and its thresholds are calibrated on the held-out demos alone.
+(``--data``, default ``data/metaworld_assembly_<episodes>.zarr``), which must exist; it has no MJX env, so training
+evaluates nothing (``eval.every`` 0, no final evaluation: ``experiments.evaluate`` runs its episodes in its own
+simulator through the policy server) and its thresholds are calibrated on the held-out demos alone.
 
 Outputs under ``cfg.out_dir()``: ``checkpoints/``, ``metrics.jsonl``, ``tb/``, ``inference.json`` (the inference
 settings of its evaluations), ``calibration.json`` and ``summary.json``.
@@ -62,15 +63,20 @@ class RunConfig:
     dry_run: bool = False  # validate config and data, print shapes and parameter count, train nothing
     num_devices: int | None = None  # data-parallel devices (default: all local devices)
     final_eval: bool = True  # evaluate the trained policy at the end (paper tables evaluate on their own: with
-    # --eval.every 0 and --no-final-eval nothing is rolled out during training)
+    # --eval.every 0 and --no-final-eval nothing is rolled out during training; external tasks never are)
     privileged_state: bool = False  # image / point-cloud policies also read the task state (object poses); by default
     # they read proprioception only (policy.encoder.state_dims = 4, as DP / DP3), unless state_dims is set
 
     def __post_init__(self):
         envs.check_task(self.task)
-        if self.external and (self.eval.every or self.final_eval):
-            raise ValueError(f"eval: {self.task} has no MJX env to evaluate in (it is evaluated in its own simulator, "
-                             f"through the policy server); pass --eval.every 0 --no-final-eval")
+        if self.external:  # no MJX env to roll out in: training evaluates nothing, experiments.evaluate does
+            if self.eval.every not in (0, EvalConfig.every):
+                raise ValueError(f"eval.every: {self.task} has no MJX env to evaluate in during training (it is "
+                                 f"evaluated in its own simulator through the policy server: python -m "
+                                 f"experiments.evaluate --checkpoint RUN_DIR); pass --eval.every 0, got "
+                                 f"{self.eval.every}")
+            object.__setattr__(self, "eval", dataclasses.replace(self.eval, every=0))
+            object.__setattr__(self, "final_eval", False)
         half = self.policy.chunk.chunk_len // 2
         if self.inference.delay > half:  # the decision must be ready before the next one starts
             raise ValueError(f"inference.delay: at most chunk.chunk_len // 2 = {half} control steps (a decision "
@@ -280,7 +286,8 @@ def _train(cfg: RunConfig, out: str) -> dict:
                "demos": {"episodes": buffer.num_episodes, "frames": buffer.num_frames}}
     write_json(os.path.join(out, "summary.json"), summary)
     if final is None:
-        print(f"\ntrained {summary['steps']} steps; outputs in {out}")
+        print(f"\ntrained {summary['steps']} steps; outputs in {out}"
+              + (f"\nevaluate it: python -m experiments.evaluate --checkpoint {out}" if cfg.external else ""))
     else:
         print(f"\nsuccess rate {final['success_rate']:.2f} over {cfg.eval.episodes} episodes; mean steps "
               f"(successful) {final['mean_steps_success']:.1f}; outputs in {out}")
