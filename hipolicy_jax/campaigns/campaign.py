@@ -32,6 +32,7 @@ from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
 from hipolicy_jax.campaigns.budgets import BUDGETS, run_config
 from hipolicy_jax.campaigns.report import changes_text
 from hipolicy_jax.runs.calibrate import run_entropies
+from hipolicy_jax.runs.external import external_summary
 from hipolicy_jax.runs import records as rec_lib
 from hipolicy_jax.runs.lock import CAMPAIGN_LOCK_FILE, RunLock, RunLockedError
 from hipolicy_jax.runs.store import Run, eval_key, make_evaluator, read_json, write_json
@@ -53,29 +54,6 @@ class Periodic(NamedTuple):
     episodes: int
     seed_base: int
     steps: tuple[int, ...] | None = None
-
-
-def external_summary(record: dict) -> dict:
-    """``eval_summary``'s scalars from a bridge's evaluation record (``runs.external.evaluate_run``)."""
-    eps = record["per_episode"]
-    success = np.asarray([e["success"] for e in eps], bool)
-    steps = np.asarray([e["steps"] for e in eps], float)
-    decisions = np.asarray([e["decisions"] for e in eps], float)
-    counts: dict[int, int] = {}
-    for e in eps:
-        for stride, n in e["strides"].items():
-            counts[int(stride)] = counts.get(int(stride), 0) + int(n)
-    out = {"success_rate": float(success.mean()),
-           "mean_steps_success": float(steps[success].mean()) if success.any() else float("nan"),
-           "mean_steps": float(steps.mean()), "mean_decisions": float(decisions.mean()),
-           "mean_actions_per_decision": float(steps.sum() / max(decisions.sum(), 1))}
-    total = sum(counts.values())
-    for stride in sorted(counts):
-        out[f"stride{stride}_frac"] = counts[stride] / total
-    ent = [e["mean_entropy"] for e in eps if e.get("mean_entropy") is not None]
-    if ent:
-        out["mean_entropy"] = float(np.mean(ent))
-    return out
 
 
 def dp3_metric(rates: list[float], best: int = DP3_METRIC_BEST) -> float | None:

@@ -26,6 +26,8 @@ import subprocess
 import tempfile
 import time
 
+import numpy as np
+
 from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.envs import external
 from hipolicy_jax.runs.records import params_fingerprint
@@ -129,21 +131,33 @@ def evaluate_run(run_dir: str, *, episodes: int, first_seed: int, max_steps: int
     return record
 
 
-def bridge_summary(record: dict, strides: list[int]) -> dict:
-    """An MJX evaluation's summary (``eval_summary``'s keys) of a bridge record: success rate, mean steps (all and
-    successful episodes; NaN when none), the fraction of decisions at each of ``strides`` (``stride{s}_frac``), and
-    per episode ``success`` / ``steps`` / ``decisions``."""
+def external_summary(record: dict) -> dict:
+    """``eval_summary``'s scalars from a bridge's evaluation record (``evaluate_run``)."""
     eps = record["per_episode"]
-    steps = [int(e["steps"]) for e in eps]
-    ok = [int(e["steps"]) for e in eps if e["success"]]
-    counts = {s: sum(int(e["strides"].get(str(s), 0)) for e in eps) for s in strides}
-    total = max(1, sum(counts.values()))
-    return {"success_rate": sum(bool(e["success"]) for e in eps) / max(1, len(eps)),
-            "mean_steps": sum(steps) / max(1, len(steps)),
-            "mean_steps_success": sum(ok) / len(ok) if ok else float("nan"),
-            **{f"stride{s}_frac": c / total for s, c in counts.items()},
-            "success": [bool(e["success"]) for e in eps], "steps": steps,
-            "decisions": [int(e["decisions"]) for e in eps]}
+    success = np.asarray([e["success"] for e in eps], bool)
+    steps = np.asarray([e["steps"] for e in eps], float)
+    decisions = np.asarray([e["decisions"] for e in eps], float)
+    counts: dict[int, int] = {}
+    for e in eps:
+        for stride, n in e["strides"].items():
+            counts[int(stride)] = counts.get(int(stride), 0) + int(n)
+    out = {"success_rate": float(success.mean()),
+           "mean_steps_success": float(steps[success].mean()) if success.any() else float("nan"),
+           "mean_steps": float(steps.mean()), "mean_decisions": float(decisions.mean()),
+           "mean_actions_per_decision": float(steps.sum() / max(decisions.sum(), 1))}
+    total = sum(counts.values())
+    for stride in sorted(counts):
+        out[f"stride{stride}_frac"] = counts[stride] / total
+    ent = [e["mean_entropy"] for e in eps if e.get("mean_entropy") is not None]
+    if ent:
+        out["mean_entropy"] = float(np.mean(ent))
+    return out
+
+
+def summary(record: dict) -> dict:
+    """``external_summary`` plus per episode ``success``, ``steps`` and ``decisions``."""
+    return {**external_summary(record), **{k: [type_(e[k]) for e in record["per_episode"]] for k, type_ in
+                                           (("success", bool), ("steps", int), ("decisions", int))}}
 
 
 def evaluate_report(run_dir: str, inference: InferenceConfig, *, episodes: int, seed: int, step: int | None = None,
@@ -152,8 +166,8 @@ def evaluate_report(run_dir: str, inference: InferenceConfig, *, episodes: int, 
     ``EVAL_SEED + 1000 seed + i`` (a campaign's evaluation of training seed ``seed``), served with ``inference``,
     once with entropy-guided execution and once always at stride 1 (skipped for a single-stride policy: the same
     run); both kept in the run dir (``evaluate_run(keep=True)``). Writes ``eval.json`` into ``out`` (default
-    ``run_dir/eval``) and returns it: ``with_eg`` / ``without_eg`` (``bridge_summary``), the network's fingerprint,
-    the checkpoint step, the initial-state seeds, the settings and ``reused`` (per pass: kept from an earlier
+    ``run_dir/eval``) and returns it: ``with_eg`` / ``without_eg`` (``summary``), the network's fingerprint, the
+    checkpoint step, the initial-state seeds, the settings and ``reused`` (per pass: kept from an earlier
     evaluation of the same network and settings, e.g. a campaign's)."""
     from hipolicy_jax.evaluation import calibration
     from hipolicy_jax.runs.store import load_run, write_json
@@ -162,19 +176,18 @@ def evaluate_report(run_dir: str, inference: InferenceConfig, *, episodes: int, 
     external.check_name(run.task)
     suite = external.SUITES[run.task.partition(":")[0]]
     first = external.EVAL_SEED + 1000 * int(seed)
-    strides = [int(s) for s in run.policy.cfg.chunk.strides]
     thresholds, source = calibration.resolve_thresholds(inference, run.policy.cfg.chunk.num_freqs,
                                                         calibration.read_calibration(run.run_dir))
     common = dict(episodes=episodes, first_seed=first, max_steps=suite.eval_max_steps, step=run.policy.step,
                   envs=envs, keep=True, log=log)
     guided = evaluate_run(run.run_dir, inference=inference, **common)
-    plain = (guided if len(strides) == 1 else
+    plain = (guided if run.policy.cfg.chunk.num_freqs == 1 else
              evaluate_run(run.run_dir, inference=dataclasses.replace(inference, entropy_guided=False), **common))
     report = {"task": run.task, "checkpoint_step": guided["checkpoint_step"],
               "params_sha256": guided["params_sha256"], "episodes": episodes,
               "seeds": [first + i for i in range(episodes)], "max_steps": suite.eval_max_steps,
-              "inference": dataclasses.asdict(inference), "thresholds": [float(t) for t in thresholds], "thresholds_source": source,
-              "with_eg": bridge_summary(guided, strides), "without_eg": bridge_summary(plain, strides),
+              "inference": dataclasses.asdict(inference), "thresholds": [float(t) for t in thresholds],
+              "thresholds_source": source, "with_eg": summary(guided), "without_eg": summary(plain),
               "wall_s": guided["wall_s"] + (0.0 if plain is guided else plain["wall_s"]),
               "reused": {"with_eg": guided["reused"], "without_eg": plain["reused"]}}
     out = out or os.path.join(run.run_dir, "eval")
@@ -183,4 +196,5 @@ def evaluate_report(run_dir: str, inference: InferenceConfig, *, episodes: int, 
     return report
 
 
-__all__ = ["bridge_summary", "check_bridge", "collect_demos", "evaluate_report", "evaluate_run", "kept_path"]
+__all__ = ["check_bridge", "collect_demos", "evaluate_report", "evaluate_run", "external_summary", "kept_path",
+           "summary"]
