@@ -179,11 +179,3 @@ def load_or_collect(task: str, encoder: EncoderConfig, episodes: int, path: str,
         return buffer
     finally:
         lock.release()
-    if progress:
-        print(f"collecting {episodes} expert demos of {task} → {path}")
-    kwargs = envs_lib.encoder_env_kwargs(encoder)
-    episodes_data = collect_demos(task, episodes, jax.random.key(seed), kwargs.pop("obs_keys"), **kwargs)
-    buffer = ReplayBuffer.from_episodes(episodes_data)
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    buffer.save(path)
-    return buffer
