@@ -299,3 +299,78 @@ def test_training_budget_rows_recompute_from_the_records(findings):
                 assert cell == "–", (steps, task, cell)
                 continue
             _check_cell(cell, _success_diffs(pairs) if pairs else None, f"budget {steps}, {task}")
+
+
+# ------------------------------------------------------------------------------------------------------- Meta-World
+
+METAWORLD = os.path.join(ROOT, "results", "metaworld", "main.md")
+
+
+def _metaworld_columns(text: str) -> tuple[int, dict[str, str]]:
+    """The training steps T the table states, and its state columns' record directories."""
+    steps = int(re.search(r"Training: (\d+) steps", text).group(1))
+    return steps, {"DP": f"dp_t{steps}", "DP+HiPolicy": f"hipolicy_t{steps}"}
+
+
+def _metaworld_runs(task: str, variant: str) -> dict[int, dict]:
+    """Per seed, the run's main evaluation (100 episodes, whole chunks, guided when the policy has strides)."""
+    out = {}
+    for seed in SEEDS:
+        path = os.path.join(ROOT, "results", "runs", "metaworld", "metaworld_" + task.split(":")[1], "state",
+                            variant, f"seed{seed}.json")
+        if not os.path.exists(path):
+            continue
+        with open(path) as f:
+            evaluations = json.load(f)["evaluations"]
+        main = [e for k, e in evaluations.items()
+                if json.loads(k)["guided"] and json.loads(k)["execution"] == "chunk" and json.loads(k)["episodes"] == 100]
+        assert len(main) == 1, path
+        out[seed] = main[0]
+    return out
+
+
+def test_metaworld_table_recomputes_from_the_records():
+    """Each state cell (success with its interval over seeds), each paired difference on the shared initial states,
+    and DP3's metric (per seed the mean of the 5 best periodic evaluations) from the bridge's run records."""
+    if not os.path.exists(METAWORLD):
+        pytest.skip("no committed Meta-World table yet")
+    with open(METAWORLD) as f:
+        text = f.read()
+    steps, variants = _metaworld_columns(text)
+    sections = _tables(text)
+    main = {r[0]: r for r in sections[""]}
+    dp3_title = [t for t in sections if t.startswith("DP3's metric")]
+    dp3 = {r[0]: r for r in sections[dp3_title[0]]} if dp3_title else {}
+    checked = 0
+    for task, row in main.items():
+        if not task.startswith("metaworld:"):
+            continue
+        runs = {col: _metaworld_runs(task, v) for col, v in variants.items()}
+        for col, cell in (("DP", row[3]), ("DP+HiPolicy", row[4])):
+            rates = [np.asarray(e["success"], float) for e in runs[col].values()]
+            if not rates:
+                assert cell == "–", (task, col, cell)
+                continue
+            est = _seed_level(rates, lo_hi=(0.0, 1.0))
+            m, lo, hi, _, _ = _parse(cell)
+            _close(m, 100 * est[0], f"{task} {col}")
+            if math.isfinite(est[1]) and est[1] < est[2]:
+                _close(lo, 100 * est[1], f"{task} {col} (low)")
+                _close(hi, 100 * est[2], f"{task} {col} (high)")
+            checked += 1
+            if task in dp3:  # DP3's metric: the mean of each seed's 5 best periodic evaluations
+                best = [sorted((c["success_rate"] for c in e["periodic"]["checkpoints"]), reverse=True)[:5]
+                        for e in runs[col].values()]
+                dp3_cell = dp3[task][3 if col == "DP" else 4]
+                _close(_parse(dp3_cell)[0], 100 * np.mean([np.mean(b) for b in best]), f"{task} {col} DP3 metric")
+        shared = sorted(set(runs["DP"]) & set(runs["DP+HiPolicy"]))
+        diffs = [np.asarray(runs["DP+HiPolicy"][s]["success"], float) - np.asarray(runs["DP"][s]["success"], float)
+                 for s in shared]
+        cell = row[7]
+        if not diffs:
+            assert cell == "–", (task, cell)
+            continue
+        _check_cell(cell.split(", p=")[0] + (f" {_parse(cell)[4]}" if _parse(cell)[4] else ""), diffs,
+                    f"{task} DP+HiPolicy − DP")
+        checked += 1
+    assert checked, "the Meta-World table has no recorded cell"
