@@ -27,6 +27,11 @@ overhead; negative when the pieces run slower alone than fused).
 alternately (``--rounds`` times each, old first), and their per-episode success, steps and decisions are
 compared (they must be identical). Env steps/s counts the control steps the episodes executed.
 
+**Compare drawn samples** (``--compare --all-samples``): both compacted; old: every decision draws all N
+samples (as before a single-frequency policy without AAC drew sample 0 alone,
+``InferenceConfig.samples_drawn``), new: today's. The per-episode outcomes are compared, as above; they are equal
+unless a last-bit difference of the sampler's float32 at another batch size changes an episode.
+
 **Compile** (``--compile``): per cell, a fresh process with an empty persistent compilation cache compiles the
 Evaluator's rollout (cold), then reset, one env step and the sampler alone (in the same process, after the rollout:
 they understate a cold compile of each piece, the reset most);
@@ -81,6 +86,9 @@ def parse_args(argv=None):
     p.add_argument("--full-forward-reset", action="store_true",
                    help="--compile: also compile the rollout as it was before the kinematic reset (the reset runs "
                         "the full mjx.forward), cold and warm, interleaved with today's")
+    p.add_argument("--all-samples", action="store_true",
+                   help="--compare: old = every decision draws all N samples (before single-frequency decisions "
+                        "without AAC drew sample 0 alone), new = today's; both compacted")
     p.add_argument("--block", type=int, default=None, help="--compare: episodes per block (default: the Evaluator's)")
     p.add_argument("--max-steps", type=int, default=None, help="cap the episodes (default: the task's limit)")
     p.add_argument("--tag", default="", help="appended to the JSON's name (profile_eval[_compare][_TAG]_<device>)")
@@ -297,8 +305,17 @@ def compare_cell(args, task: str, kind: str, execution: str) -> dict:
     e = args.episodes
     print(f"[{task} {kind} {execution}] {source}, {e} episodes", flush=True)
     paths = {}
-    for compact in (False, True):
-        ev = Evaluator(task, cfg, action_dim, inference, max_steps=args.max_steps, compact=compact)
+    for name in ("old", "new"):
+        compact = args.all_samples or name == "new"
+        if args.all_samples and name == "old":  # this evaluator only: a decision draws all N samples
+            drawn = InferenceConfig.samples_drawn
+            InferenceConfig.samples_drawn = lambda self, num_freqs: self.num_samples
+            try:
+                ev = Evaluator(task, cfg, action_dim, inference, max_steps=args.max_steps, compact=compact)
+            finally:
+                InferenceConfig.samples_drawn = drawn
+        else:
+            ev = Evaluator(task, cfg, action_dim, inference, max_steps=args.max_steps, compact=compact)
         ro = ev._rollout
         if args.block:
             ro.block = args.block
@@ -306,8 +323,8 @@ def compare_cell(args, task: str, kind: str, execution: str) -> dict:
         block = ro.block_for(e)
         t0 = time.perf_counter()
         compiled = (ro._compacted.lower(keys, pargs, block) if compact else ro._jitted.lower(keys, pargs)).compile()
-        paths["new" if compact else "old"] = {"compiled": compiled, "keys": keys, "block": block,
-                                             "compile_s": time.perf_counter() - t0, "times": [], "outcomes": []}
+        paths[name] = {"compiled": compiled, "keys": keys, "block": block, "samples": ro.rows_per_episode,
+                       "compile_s": time.perf_counter() - t0, "times": [], "outcomes": []}
     for _ in range(args.rounds):
         for name in ("old", "new"):
             p = paths[name]
@@ -323,7 +340,8 @@ def compare_cell(args, task: str, kind: str, execution: str) -> dict:
     rounds, blocks = rounds_of(oc["decisions"], new["block"])
     t_old, t_new = float(np.median(old["times"])), float(np.median(new["times"]))
     row = {"task": task, "policy": kind, "execution": execution, "policy_source": source, "episodes": e,
-           "num_samples": inference.num_samples, "block": new["block"], "rounds": rounds,
+           "num_samples": inference.num_samples, "old_samples_drawn": old["samples"],
+           "new_samples_drawn": new["samples"], "block": new["block"], "old_block": old["block"], "rounds": rounds,
            "blocks_run": blocks, "episode_decisions_old": rounds * e, "episode_decisions_new": blocks * new["block"],
            "decisions": int(sum(oc["decisions"])), "control_steps": steps,
            "old_s": t_old, "new_s": t_new, "old_times_s": old["times"], "new_times_s": new["times"],
@@ -396,15 +414,23 @@ def compare_note(rows: list[dict]) -> str:
 
     outcome_rows = [r for r in rows if same(r, ("success", "steps"))]
     differ = [f"{r['task']} {r['policy']} {r['execution']}" for r in rows if not same(r, ("success", "steps", "decisions"))]
+    drawn = rows[0].get("old_samples_drawn", 0) != rows[0].get("new_samples_drawn", 0)
+    if drawn:
+        what = ("Old: every decision draws all N samples; new: a single-frequency decision without AAC draws sample 0 "
+                "alone (`InferenceConfig.samples_drawn`); both compacted rollouts.")
+        ratio = ("the sampler's rows per decision (old / new)", lambda r: r["old_samples_drawn"] / r["new_samples_drawn"])
+    else:
+        what = ("Old: the vmapped episode (`Rollout(compact=False)`); new: the compacted rollout (`compact=True`, the "
+                "Evaluator's default).")
+        ratio = ("the ratio of sampler rows the two compute (old / new)",
+                 lambda r: r["episode_decisions_old"] / r["episode_decisions_new"])
     lines = [
-        f"Old: the vmapped episode (`Rollout(compact=False)`); new: the compacted rollout (`compact=True`, the "
-        f"Evaluator's default). Both compiled ahead of time, then run alternately (old first), "
+        f"{what} Both compiled ahead of time, then run alternately (old first), "
         f"{rows[0]['episodes']} episodes from the campaign's first evaluation key; other jobs ran at nice 19 (load "
         f"average in the JSON's `machine`).",
         "",
-        "- Speedup (old s / new s) against the ratio of sampler rows the two compute (old / new): "
-        + ", ".join(f"{r['task']} {r['policy']} {r['execution']} {r['speedup']:.2f}x of "
-                    f"{r['episode_decisions_old'] / r['episode_decisions_new']:.2f}x "
+        f"- Speedup (old s / new s) against {ratio[0]}: "
+        + ", ".join(f"{r['task']} {r['policy']} {r['execution']} {r['speedup']:.2f}x of {ratio[1](r):.2f}x "
                     f"({r['old_s']:.0f} → {r['new_s']:.0f} s)" for r in rows) + ".",
         f"- Per-episode success and steps identical in {len(outcome_rows)} of {len(rows)} cells; success, steps "
         f"and decisions in {len(rows) - len(differ)}"

@@ -30,6 +30,8 @@ SECTIONS = (("sampling", "One-call N-sample latency (the paper's sample-times ta
                                                    "100 episodes"),
             ("profile_eval_compare_e20", "Compacted rollout vs the vmapped one, 20 episodes (interleaved, one run)"),
             ("profile_eval_compile", "Rollout compile: cold, its pieces alone, and from the persistent cache"),
+            ("profile_eval_compare_drawn", "Single-frequency decisions: sample 0 alone vs all N samples (interleaved, "
+                                           "one run)"),
             ("sampling_n1", "N = 1 against the weight-read bound (DP low-dim, paper size; campaigns paused)"),
             ("small_matmul", "The N = 1 bound one kernel at a time: XLA's small-M dot against the read bandwidth"),
             ("tradeoff", "Latency–success trade-off"),

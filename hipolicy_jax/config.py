@@ -313,6 +313,20 @@ class InferenceConfig:
                  f"asynchronous execution runs whole chunks (--inference.execution chunk), got execution "
                  f"{self.execution!r} with delay {self.delay}")
 
+    def samples_drawn(self, num_freqs: int) -> int:
+        """The chunks one decision of a ``num_freqs``-frequency policy draws: N, or 1 for a single-frequency policy
+        (one stride: plain Diffusion Policy) whose execution reads no entropy (``chunk``, ``te``). Such a decision
+        executes sample 0, and sample 0's key (``jax.random.split(key, N)[0]``) is the key an N = 1 draw uses, so
+        drawing it alone executes the same chunk (equal to float rounding: XLA's kernels for N·B and B rows may
+        round the last bit differently) at 1/N of the sampler's cost. AAC reads the N samples' entropy curve and
+        draws all N; so does any policy with several frequencies."""
+        return 1 if num_freqs == 1 and self.execution != "aac" else self.num_samples
+
+    def decision_settings(self, num_freqs: int) -> "InferenceConfig":
+        """``sampler_settings`` with ``samples_drawn``: what one decision of a ``num_freqs``-frequency policy
+        compiles (the closed-loop policy, the policy server and the export)."""
+        return dataclasses.replace(self.sampler_settings(), num_samples=self.samples_drawn(num_freqs))
+
     def sampler_settings(self) -> "InferenceConfig":
         """Only what compiled samplers and rollouts depend on (N, sampler, steps, execution, entropy ε), the rest at
         defaults: their static key, so thresholds or calibration settings never recompile."""

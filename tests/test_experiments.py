@@ -383,6 +383,7 @@ def test_findings_gather_each_paired_comparison_with_its_verdict(tmp_path):
     main = [rec(t, c, s, (c == "DP") == (t == "press_button")) for t in tasks for c in ("DP", "DP+HiPolicy")
             for s in seeds]
     execution = [rec(t, c, s, True) for t in tasks for c in ("DP+TE", "DP+AAC", "HiPolicy") for s in seeds]
+    execution.append(rec("latch_door", "w/o EG", 0, False))  # one seed so far: a point, no verdict, not counted
     write_json(str(tmp_path / "main.json"), {"records": main})
     write_json(str(tmp_path / "execution.json"), {"records": execution})
     text = open(tables.findings_table(camp, built)).read()
@@ -394,7 +395,7 @@ def test_findings_gather_each_paired_comparison_with_its_verdict(tmp_path):
     assert rows["DP3+HiPolicy vs DP3"].split(" | ")[2:] == ["–"] * 6 + ["0/0/0 |"]  # no DP3 record yet
     assert rows["HiPolicy vs DP+TE"].split(" | ")[2:4] == ["+0.0 ties", "+0.0 ties"]
     assert "HiPolicy vs DP+AAC" in rows and "HiPolicy vs DP" not in rows  # the main table's pair, counted once
-    assert "HiPolicy vs w/o EG" in rows  # the same-network comparison (no w/o EG records here: '–')
+    assert rows["HiPolicy vs w/o EG"].split(" | ")[2:4] == ["–", "+100.0 (1 seed: no test)"]  # same network
     assert "Over the 6 (comparison, task) cells: HiPolicy wins 1, ties 4, loses 1." in text
     assert "## Entropy-guided execution, same network: HiPolicy vs w/o EG" in text
 
@@ -438,6 +439,8 @@ def test_table_formatting_helpers():
     assert report.ci(ep, "success_rate", (0,), ["a", "b"], 100.0, column="base") != "–"
     assert report.paired_cell(ep, (0,), ["a"], "new", "base") == "+0.0 (1 seed: no test)"
     assert report.paired_cell(ep, (0,), ["a", "b"], "new", "base") == "–"
+    both = ep + [{**ep[1], "column": "new"}]  # both tasks paired, one seed each: a pooled point, no test
+    assert report.paired_cell(both, (0,), ["a", "b"], "new", "base") == "+0.0 (a task has 1 seed: no test)"
 
 
 @pytest.mark.slow

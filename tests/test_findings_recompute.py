@@ -139,7 +139,8 @@ def _verdict(low: float, high: float) -> str:
 # ---------------------------------------------------------------------------------------------------------- reading
 
 _NUM = r"[+-]?\d+(?:\.\d+)?"
-_CELL = re.compile(rf"^({_NUM})(?: \[({_NUM}), ({_NUM})\])?(?:,? ?p=([^ ]+))?(?: \(?(wins|ties|loses)\)?)?$")
+_CELL = re.compile(rf"^({_NUM})(?: \[({_NUM}), ({_NUM})\])?(?:,? ?p=([^ ]+))?(?: \(?(wins|ties|loses)\)?)?"
+                   r"(?: \(1 seed: no test\))?$")
 
 
 def _parse(cell: str):

@@ -23,6 +23,11 @@ def test_profile_and_compare_write_finite_json(tmp_path):
     assert row["block"] == 2 and row["identical_outcomes"] and row["old"] == row["new"]
     assert row["speedup"] > 0 and math.isfinite(row["new_compile_s"]) and "machine" in res
     assert "identical in 1 of 1 cells; success, steps and decisions in 1." in res["note"]
+    profile_eval.main(["--quick", "--compare", "--all-samples", "--cells", "dp:chunk", "--out-dir", str(tmp_path)])
+    res = jsonio.load(str(tmp_path / "profile_eval_compare_cpu.json"))
+    (row,) = res["rows"]
+    assert (row["old_samples_drawn"], row["new_samples_drawn"]) == (4, 1) and row["num_samples"] == 4
+    assert row["old"]["success"] == row["new"]["success"] and res["note"].startswith("Old: every decision draws")
     profile_eval.main(["--quick", "--compile", "--full-forward-reset", "--cells", "dp:chunk", "--out-dir",
                        str(tmp_path)])
     res = jsonio.load(str(tmp_path / "profile_eval_compile_cpu.json"))

@@ -181,6 +181,33 @@ def test_single_sample_skips_entropy_and_runs_highest_frequency():
     np.testing.assert_array_equal(np.asarray(res.actions), np.asarray(res.chunks[:, 0, 8:12]))
 
 
+@pytest.mark.parametrize("execution,drawn", [("chunk", 1), ("te", 1), ("aac", 16)])
+def test_single_frequency_decision_draws_sample_zero_alone(execution, drawn):
+    """Plain Diffusion Policy (one stride) executes sample 0 and, without AAC, reads no entropy: a decision draws
+    sample 0 alone. Its key is ``split(key, N)[0]``, the key an N = 1 draw uses, so it executes the chunk the N = 16
+    draw would have (to float rounding), at 1/16 of the sampler's cost; several strides always draw N."""
+    from hipolicy_jax.evaluation.policy import PolicyArgs, make_decision_fn
+    inference = InferenceConfig(num_samples=16, sampler="ddpm", num_steps=10, execution=execution)
+    assert inference.samples_drawn(1) == drawn and inference.samples_drawn(3) == 16
+    assert inference.decision_settings(1).num_samples == drawn and inference.decision_settings(1).execution == execution
+    key = jax.random.key(5)
+    np.testing.assert_array_equal(jax.random.key_data(jax.random.split(key, 16)[0]),
+                                  jax.random.key_data(jax.random.split(key, 1)[0]))
+    cfg, net = _cfg(strides=(1,)), FakeNet()
+    args = PolicyArgs({"w": jnp.float32(0.5), "v": jnp.float32(0.3)}, AffineNormalizer(jnp.float32(2.0)))
+    history = {"state": jnp.arange(cfg.chunk.obs_span * 5, dtype=jnp.float32).reshape(cfg.chunk.obs_span, 5) / 50}
+    decision = make_decision_fn(net, cfg, 2, inference)(history, key, args)
+    full = make_decision_fn(net, cfg, 2, InferenceConfig(num_samples=16, sampler="ddpm", num_steps=10,
+                                                         execution="aac"))(history, key, args)
+    assert decision.chunks.shape == (drawn, 4, 2) and full.chunks.shape == (16, 4, 2)
+    np.testing.assert_allclose(np.asarray(decision.actions), np.asarray(full.actions), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(decision.chunks[0]), np.asarray(full.chunks[0]), rtol=1e-6, atol=1e-6)
+    assert np.isnan(float(decision.entropy)) == (drawn == 1)
+    several = make_decision_fn(net, _cfg(), 2, inference)(
+        {"state": jnp.zeros((_cfg().chunk.obs_span, 5))}, key, args)
+    assert several.chunks.shape[0] == 16
+
+
 @pytest.mark.parametrize("objective,sampler,steps", [("diffusion", "ddpm", 10), ("diffusion", "ddim", 3),
                                                      ("diffusion", "ddim-clipped", 3), ("flow", "euler", 4),
                                                      ("flow", "euler", 1)])

@@ -163,7 +163,8 @@ def paired_cell(records: list[dict], seeds, tasks, new: str, base: str) -> str:
     if c is None:
         return "–"
     if not np.isfinite(c.p):
-        return f"{interval_text(c.diff, 100.0, signed=True)} ({c.diff.seeds} seed: no test)"
+        why = f"{c.diff.seeds} seed" if len(tasks) == 1 else "a task has 1 seed"
+        return f"{interval_text(c.diff, 100.0, signed=True)} ({why}: no test)"
     return f"{interval_text(c.diff, 100.0, signed=True)}, p={p_text(c.p)} ({verdict_text(c)})"
 
 

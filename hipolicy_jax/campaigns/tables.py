@@ -818,7 +818,10 @@ def findings_table(args: "CampaignArgs", tables: list[PaperArgs]) -> str | None:
                     cells.append("–")
                     continue
                 verdict = stats.verdict(c.diff)
-                counts[verdict] += verdict in counts
+                if verdict not in counts:  # one seed so far: a point, no test, no verdict
+                    cells.append(f"{interval_text(c.diff, 100.0, signed=True)} ({c.diff.seeds} seed: no test)")
+                    continue
+                counts[verdict] += 1
                 cells.append(f"{interval_text(c.diff, 100.0, signed=True)} {verdict}")
             for v in VERDICTS:
                 tally[v] += counts[v]

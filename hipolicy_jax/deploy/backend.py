@@ -7,7 +7,8 @@ evaluator's execution strategies read (``evaluation.policy.make_decision_fn``), 
            prefix_valid (B,) bool = False) -> {
         "actions": (B, L_c, A) float32   sample 0's chunk at the selected frequency (unnormalised),
         "stride": (B,) int32, "freq_index": (B,) int32, "entropy": (B,) float32 (NaN when N = 1),
-        "chunks": (B, N, M·L_c, A) float32  all N samples at every frequency}
+        "chunks": (B, N, M·L_c, A) float32  all N samples at every frequency (N = the manifest's num_samples:
+                                             1 for a single-frequency policy without AAC)}
 
 ``obs`` holds the raw control-rate history of every observation key the policy reads (oldest first, the last frame
 current; pad an episode's start by repeating its first frame), ``key_data`` one raw threefry PRNG key per row
@@ -62,18 +63,20 @@ def prefix_len(inference: InferenceConfig) -> int:
 
 def make_metadata(*, task: str, cfg, action_dim: int, inference: InferenceConfig, thresholds,
                   thresholds_source: str, obs: dict[str, dict], extra: dict | None = None) -> dict:
-    """The manifest a backend and an export describe themselves with (strict JSON)."""
+    """The manifest a backend and an export describe themselves with (strict JSON). ``num_samples``: the chunks a
+    decision draws (``InferenceConfig.samples_drawn``: 1 for a single-frequency policy without AAC)."""
+    n = inference.samples_drawn(cfg.chunk.num_freqs)
     return {"format": "hipolicy_jax.policy", "version": MANIFEST_VERSION, "task": task,
             "obs": obs, "action_dim": int(action_dim), "strides": list(cfg.chunk.strides),
             "chunk_len": int(cfg.chunk.chunk_len), "obs_horizon": int(cfg.chunk.obs_horizon),
             "obs_span": int(cfg.chunk.obs_span), "horizon": int(cfg.chunk.horizon),
-            "num_samples": int(inference.num_samples), "objective": cfg.objective, "policy": config_to_dict(cfg),
-            "inference": dataclasses.asdict(inference.sampler_settings()),
+            "num_samples": n, "objective": cfg.objective, "policy": config_to_dict(cfg),
+            "inference": dataclasses.asdict(inference.decision_settings(cfg.chunk.num_freqs)),
             "thresholds": [float(t) for t in np.asarray(thresholds).tolist()], "thresholds_source": thresholds_source,
             "inputs": {"obs": {k: ["B", *spec["shape"]] for k, spec in obs.items()}, "key_data": ["B", 2],
                        "prefix": ["B", prefix_len(inference), action_dim], "prefix_valid": ["B"]},
             "outputs": {"actions": ["B", cfg.chunk.chunk_len, action_dim], "stride": ["B"], "freq_index": ["B"],
-                        "entropy": ["B"], "chunks": ["B", inference.num_samples, cfg.chunk.horizon, action_dim]},
+                        "entropy": ["B"], "chunks": ["B", n, cfg.chunk.horizon, action_dim]},
             **(extra or {})}
 
 

@@ -33,7 +33,7 @@ class Evaluator:
     ``task``: a task name (the env is built for the encoder's observations and camera) or an env. ``max_steps``
     caps episodes (default: the task's limit). ``traces`` counts rollout traces (one per compile). ``compact``
     (default): finished episodes stop costing sampler and physics (``rollout.Rollout``, blocks of
-    ``rollout.default_block(episodes, inference.num_samples)`` episodes); False: the vmapped episode of every
+    ``rollout.default_block(episodes, inference.samples_drawn(...))`` episodes); False: the vmapped episode of every
     episode to the end of the longest.
     """
 
@@ -52,7 +52,7 @@ class Evaluator:
         self._rollout = Rollout(self.env, policy_fn, init_fn, history_len=cfg.chunk.obs_span,
                                 chunk_len=execution.exec_len(cfg.chunk), max_steps=max_steps,
                                 min_actions=execution.min_actions(cfg.chunk), compact=compact,
-                                rows_per_episode=inference.num_samples)
+                                rows_per_episode=inference.samples_drawn(cfg.chunk.num_freqs))
         self._sampler = None
 
     @property

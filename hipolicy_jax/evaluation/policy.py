@@ -29,12 +29,13 @@ class PolicyArgs(NamedTuple):
 
 def make_decision_fn(net, cfg: PolicyConfig, action_dim: int,
                      inference: InferenceConfig = InferenceConfig()) -> Callable[..., Decision]:
-    """``decide(obs_history, key, args: PolicyArgs, prefix=None) -> Decision`` for ONE episode: the sampler's N
-    chunks, entropy and selected frequency before any execution strategy. ``prefix``: None or ``(actions (d, A),
+    """``decide(obs_history, key, args: PolicyArgs, prefix=None) -> Decision`` for ONE episode: the sampler's
+    chunks (``inference.samples_drawn``: N, or sample 0 alone where nothing reads the others), entropy and selected
+    frequency before any execution strategy. ``prefix``: None or ``(actions (d, A),
     valid ())`` committed actions to inpaint (``sampling.sample``). What the policy server and the exported policy
     compute; ``make_policy_fn`` adds the execution strategy."""
     keys = cfg.encoder.obs_keys
-    inference = inference.sampler_settings()
+    inference = inference.decision_settings(cfg.chunk.num_freqs)  # one stride, no AAC: sample 0 alone
 
     def decide(obs_history, key, args: PolicyArgs, prefix=None) -> Decision:
         missing = [k for k in keys if k not in obs_history]
