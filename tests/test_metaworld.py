@@ -329,6 +329,10 @@ def test_metaworld_campaign_end_to_end(tmp_path, monkeypatch):
     assert "15 ± 1" in text and "99 ± 1" in text  # published, beside ours
     table = json.loads((tmp_path / "res" / "main.json").read_text())["records"]
     assert sorted(r["column"] for r in table) == ["DP", "DP+HiPolicy", "DP3", "DP3+HiPolicy"]
+    metric = {r["column"]: r["dp3_metric"] for r in table}  # one seed: the gaps are our value − the published mean
+    row = text.split("## DP3's metric")[1].split("| metaworld:assembly |")[1].split("\n")[0]
+    assert [c.strip() for c in row.strip().strip("|").split(" | ")[-2:]] == [f"{100 * metric['DP'] - 15:+.1f}",
+                                                                              f"{100 * metric['DP3'] - 99:+.1f}"]
     for r in table:
         assert len(r["success"]) == 2 and r["dp3_metric"] is not None
         assert [c["step"] for c in r["periodic"]["checkpoints"]] == [6, 12]
