@@ -439,6 +439,9 @@ def test_table_formatting_helpers():
     assert report.ci(ep, "success_rate", (0,), ["a", "b"], 100.0, column="base") != "–"
     assert report.paired_cell(ep, (0,), ["a"], "new", "base") == "+0.0 (1 seed: no test)"
     assert report.paired_cell(ep, (0,), ["a", "b"], "new", "base") == "–"
+    far = [{"task": "t", "seed": s, "column": "c", "success_rate": 1.0, "success": [True], "steps": [v]}
+           for s, v in ((0, 10), (1, 400))]  # steps to success: the t interval (t(1) = 12.7) clipped at 0
+    assert report.ci(far, "mean_steps_success", (0, 1), ["t"], column="c").startswith("205.0 [0.0, 2")
     both = ep + [{**ep[1], "column": "new"}]  # both tasks paired, one seed each: a pooled point, no test
     assert report.paired_cell(both, (0,), ["a", "b"], "new", "base") == "+0.0 (a task has 1 seed: no test)"
 
