@@ -442,6 +442,8 @@ def test_table_formatting_helpers():
     far = [{"task": "t", "seed": s, "column": "c", "success_rate": 1.0, "success": [True], "steps": [v]}
            for s, v in ((0, 10), (1, 400))]  # steps to success: the t interval (t(1) = 12.7) clipped at 0
     assert report.ci(far, "mean_steps_success", (0, 1), ["t"], column="c").startswith("205.0 [0.0, 2")
+    low = [{"task": "t", "seed": s, "column": "c", "dp3_metric": v} for s, v in ((0, 0.0), (1, 0.02))]
+    assert report.ci(low, "dp3_metric", (0, 1), ["t"], 100.0, column="c").startswith("1.0 [0.0, ")  # a rate
     both = ep + [{**ep[1], "column": "new"}]  # both tasks paired, one seed each: a pooled point, no test
     assert report.paired_cell(both, (0,), ["a", "b"], "new", "base") == "+0.0 (a task has 1 seed: no test)"
 

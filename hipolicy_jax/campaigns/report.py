@@ -70,6 +70,7 @@ def outcomes(records: list[dict], metric: str, seeds, **match) -> dict[int, np.n
 
 RATE_BOUNDS = (0.0, 1.0)  # a success rate's range: its intervals are clipped to it
 DIFF_BOUNDS = (-1.0, 1.0)  # a difference of two success rates
+RATES = ("success_rate", "dp3_metric")  # DP3's metric: a mean of success rates
 COUNT_BOUNDS = (0.0, math.inf)  # steps, decisions, actions: never below 0
 COUNTS = ("mean_steps_success", "mean_steps", "mean_decisions", "mean_actions_per_decision")
 
@@ -91,7 +92,7 @@ def ci(records: list[dict], metric: str, seeds, tasks, scale: float = 1.0, **mat
     groups = [outcomes(records, metric, seeds, task=t, **match) for t in tasks]
     if len(groups) > 1 and not all(groups):
         return "–"  # an average over some of the tasks is not the tasks' average
-    bounds = RATE_BOUNDS if metric == "success_rate" else COUNT_BOUNDS if metric in COUNTS else None
+    bounds = RATE_BOUNDS if metric in RATES else COUNT_BOUNDS if metric in COUNTS else None
     iv = stats.seed_mean(groups[0], bounds=bounds) if len(groups) == 1 else stats.average(groups, bounds=bounds)
     return interval_text(iv, scale)
 
