@@ -308,3 +308,31 @@ def test_batch_indices_resumable_and_cover_each_epoch_once():
     assert ds.steps_per_epoch(9) == 5
     epoch0_b9 = np.concatenate([ds.batch_indices(key, s, 9) for s in range(5)])
     assert len(np.unique(epoch0_b9)) == 45
+
+
+def test_delta_segment_coverage_closed_form():
+    """A stride-s segment of displacement actions moves 1/s of the demo's way at constant speed; on a ramp
+    a_i = i the ratio is Σ_k (f+ks) / Σ_{i<sL} (f+i); windows never cross an episode end; still windows drop."""
+    from hipolicy_jax.data.windowing import delta_segment_coverage
+
+    chunk = ChunkConfig(strides=(1, 2, 3))  # L_c 8, δ 1
+    const = np.tile(np.array([[1.0, 0.0, 0.0, 0.7]]), (100, 1))
+    cov = delta_segment_coverage(const, np.array([100]), chunk)
+    for s in (1, 2, 3):
+        assert cov[s].shape == (100 - 8 * s,)  # first frames δ .. 100 - 8 s
+        np.testing.assert_allclose(cov[s], 1.0 / s)
+
+    ramp = np.arange(60, dtype=np.float64)[:, None]
+    cov = delta_segment_coverage(ramp, np.array([60]), chunk, dims=(0,))
+    f = np.arange(1, 60 - 24 + 1)  # stride 3: first action index of each window
+    expected = (8 * f + 3 * 28) / (24 * f + 24 * 23 / 2)
+    np.testing.assert_allclose(cov[3], expected)
+
+    # two episodes moving in opposite directions: a window across the boundary would mix them
+    two = np.concatenate([np.ones((40, 3)), -np.ones((30, 3))])
+    cov = delta_segment_coverage(two, np.array([40, 70]), chunk)
+    assert cov[3].shape == ((40 - 24) + (30 - 24),)
+    np.testing.assert_allclose(cov[3], 1 / 3)
+    assert delta_segment_coverage(np.zeros((50, 3)), np.array([50]), chunk)[2].shape == (0,)
+    with pytest.raises(ValueError, match="episode_ends"):
+        delta_segment_coverage(const, np.array([101]), chunk)

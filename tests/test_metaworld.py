@@ -375,6 +375,50 @@ def test_metaworld_campaign_end_to_end(tmp_path, monkeypatch):
                                                                       ("success", "steps", "decisions")]
     assert len(list((run_dir / "external_eval").glob("step*.json"))) == 4  # the unguided pass, kept too
 
+    # the post-hoc diagnosis: the demos' segment coverage, and the state DP+HiPolicy network at stride 1 (its
+    # guided pass the campaign's, reused; the unguided one run through the bridge), beside DP, from its own files
+    from hipolicy_jax.campaigns.metaworld import STRIDE1
+
+    diag = [str(tmp_path / "diag") if f == str(tmp_path / "res") else f for f in flags] + ["--seeds", "0"]
+    md = metaworld(parse_args(["diagnose", *diag]))
+    cov = json.loads((tmp_path / "diag" / "assembly_coverage.json").read_text())
+    assert cov["strides"]["1"]["median"] == pytest.approx(1.0) and cov["episodes"] == 6  # the smoke budget's demos
+    assert 0.2 < cov["strides"]["3"]["median"] < 0.5  # the expert's displacement actions: about 1/3
+    (state_eval,) = (tmp_path / "diag").glob("assembly_*_seed0_eval.json")
+    report = json.loads(state_eval.read_text())
+    state_hip = json.loads((tmp_path / "rec" / "smoke" / "metaworld_assembly" / "state" / "hipolicy" /
+                            "seed0.json").read_text())
+    assert report["params_sha256"] == state_hip["network"]["params_sha256"]
+    assert report["reused"]["with_eg"] and report["without_eg"]["stride1_frac"] == 1.0
+    (guided,) = state_hip["evaluations"].values()
+    assert report["with_eg"]["success"] == guided["success"]
+    rows = {r["column"]: r for r in json.loads((tmp_path / "diag" / "diagnose.json").read_text())["records"]}
+    assert rows[STRIDE1]["success"] == report["without_eg"]["success"]
+    assert rows[STRIDE1]["run"] == rows["DP+HiPolicy"]["run"]
+    text = open(md).read()
+    assert "Post hoc" in text and "| metaworld:assembly |" in text and STRIDE1 in text
+    monkeypatch.setattr(external, "_run", lambda *a, **k: pytest.fail(f"ran the bridge again: {a}"))
+    again = open(metaworld(parse_args(["diagnose", *diag, "--from-records"]))).read()
+    assert again.split("| Task")[1:] == text.split("| Task")[1:]
+
+
+def test_demo_coverage_of_displacement_demos(tmp_path):
+    """The diagnosis's demo summary: at constant speed a stride-s segment covers 1/s of the demo's move; the share of
+    xyz entries at the action bound is counted per entry."""
+    from hipolicy_jax.campaigns.metaworld import demo_coverage
+    from hipolicy_jax.config import ChunkConfig
+
+    episodes = [{"state": np.zeros((n, 39), np.float32),
+                 "action": np.tile(np.array([[1.0, 0.5, 0.0, 1.0]], np.float32), (n, 1))} for n in (40, 50)]
+    ReplayBuffer.from_episodes(episodes).save(str(tmp_path / "d.zarr"))
+    cov = demo_coverage(str(tmp_path / "d.zarr"), ChunkConfig(strides=(1, 2, 3)))
+    assert cov["episodes"] == 2 and cov["frames"] == 90
+    for s in (1, 2, 3):
+        row = cov["strides"][str(s)]
+        assert row["windows"] == (40 - 8 * s) + (50 - 8 * s)
+        assert row["median"] == pytest.approx(1 / s) and row["quartiles"] == pytest.approx([1 / s, 1 / s])
+    assert cov["saturated_xyz"] == pytest.approx(1 / 3)  # x at +1; y at 0.5, z at 0
+
 
 def test_metaworld_budget_rules_by_hand():
     from hipolicy_jax.campaigns.metaworld import budget_rules

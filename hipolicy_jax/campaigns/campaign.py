@@ -172,8 +172,7 @@ class Campaign:
             record = read_record(path)  # that shard may have just recorded it
             if key in record.get("evaluations", {}):
                 return record["evaluations"][key]
-            if cfg.external and not os.path.exists(cfg.data_path()):
-                self._collect_external(cfg, seed)
+            self.ensure_demos(cfg, seed)
             run = ensure_trained(cfg)
             summary = run_summary(run)
             net = rec_lib.network(run.policy.params, summary["training"].get("final_loss"))
@@ -212,15 +211,19 @@ class Campaign:
             write_json(path, record)
             return evaluation
 
-    def _collect_external(self, cfg: RunConfig, seed: int) -> None:
-        """An external task's demo buffer, with point clouds of the budget's point count (one buffer serves every
-        column), episodes cut at the suite's campaign step limit."""
+    def ensure_demos(self, cfg: RunConfig, seed: int) -> str:
+        """``cfg.data_path()``; an external task's demo buffer is collected there when missing, with point clouds of
+        the budget's point count (one buffer serves every column), episodes cut at the suite's campaign step limit
+        (an MJX task's demos are collected by its training)."""
         from hipolicy_jax.runs.external import collect_demos
 
+        if not cfg.external or os.path.exists(cfg.data_path()):
+            return cfg.data_path()
         points = self.run_config(cfg.task, Column("pc", "pointcloud"), seed).policy.encoder.num_points
         suite = envs.external.SUITES[cfg.task.partition(":")[0]]
         os.makedirs(os.path.dirname(os.path.abspath(cfg.data_path())), exist_ok=True)
         collect_demos(cfg.task, cfg.episodes, cfg.data_path(), num_points=points, max_steps=suite.eval_max_steps)
+        return cfg.data_path()
 
     def _external_evaluation(self, run: Run, col: Column, seed: int, inference: InferenceConfig, key: str,
                              periodic: Periodic | None) -> dict:

@@ -108,15 +108,39 @@ class MainArgs(MetaWorldArgs):
         return protocol_tasks(METAWORLD_POINTCLOUD_TASKS or 0)
 
     def training_steps(self) -> int:
-        """T: ``--steps``, else the pilot's (``budgets.METAWORLD_STEPS``); the smoke budget keeps its own."""
-        if self.budget != "metaworld":
-            return BUDGETS[self.budget].train.num_steps
-        steps = self.steps or METAWORLD_STEPS
-        if steps is None:
-            raise ValueError("steps: the Meta-World training length is not fixed yet; run the pilot first "
-                             "(python -m experiments.metaworld pilot), record its T in results/metaworld/PROTOCOL.md "
-                             "and hipolicy_jax/campaigns/budgets.py METAWORLD_STEPS (or pass --steps)")
-        return steps
+        return training_steps(self.budget, self.steps)
+
+
+def training_steps(budget: str, steps: int | None) -> int:
+    """T: ``steps`` (``--steps``), else the pilot's (``budgets.METAWORLD_STEPS``); the smoke budget keeps its own."""
+    if budget != "metaworld":
+        return BUDGETS[budget].train.num_steps
+    steps = steps or METAWORLD_STEPS
+    if steps is None:
+        raise ValueError("steps: the Meta-World training length is not fixed yet; run the pilot first "
+                         "(python -m experiments.metaworld pilot), record its T in results/metaworld/PROTOCOL.md "
+                         "and hipolicy_jax/campaigns/budgets.py METAWORLD_STEPS (or pass --steps)")
+    return steps
+
+
+def run_changes(budget: str, steps: int | None) -> tuple[tuple[str, int], ...]:
+    """The campaign runs' changes to the budget's config: the training length when it is not the budget's own."""
+    n = training_steps(budget, steps)
+    return () if n == BUDGETS[budget].train.num_steps else (("train.num_steps", n),)
+
+
+@dataclasses.dataclass(frozen=True)
+class DiagnoseArgs(MetaWorldArgs):
+    """Post hoc, not in the protocol: per task, how far a stride's segment of Meta-World's displacement actions moves
+    the hand (the campaign's demos), and each recorded DP+HiPolicy network evaluated again at stride 1 (w/o EG) on
+    its seed's initial states, beside DP and the guided evaluation → ``results/metaworld/diagnosis/``."""
+
+    TABLE: ClassVar[str] = "diagnose"
+    results: str = "results/metaworld/diagnosis"
+    steps: int | None = None  # training steps T of the runs (default: the pilot's, as ``main``)
+
+    def default_tasks(self) -> tuple[str, ...]:
+        return protocol_tasks(METAWORLD_STATE_TASKS)
 
 
 # ------------------------------------------------------------------------------------------------ pilot
@@ -225,8 +249,7 @@ def pilot_table(args: PilotArgs) -> str:
 def main_jobs(args: MainArgs) -> list[Job]:
     """The protocol's order: state columns before point clouds; task by task in the protocol's order; DP before
     DP+HiPolicy; seeds ascending."""
-    steps = args.training_steps()
-    changes = () if steps == BUDGETS[args.budget].train.num_steps else (("train.num_steps", steps),)
+    changes = run_changes(args.budget, args.steps)
     pc_tasks = set(args.resolved_pointcloud_tasks())
     jobs = []
     for obs in ("state", "pointcloud"):
@@ -330,13 +353,126 @@ def main_table(args: MainArgs) -> str:
     return md
 
 
-SUBCOMMANDS: dict[str, type] = {"pilot": PilotArgs, "main": MainArgs}
-BUILDERS = {"pilot": pilot_table, "main": main_table}
+# ---------------------------------------------------------------------------------------------- diagnose
+
+STRIDE1 = "DP+HiPolicy at stride 1"  # the same network as DP+HiPolicy, entropy guidance off (w/o EG)
+
+
+def demo_coverage(path: str, chunk) -> dict:
+    """What the demos at ``path`` say about executing their strides' segments: per stride the median and quartiles
+    of ``windowing.delta_segment_coverage`` (hand xyz), and the share of xyz action entries at the action bound
+    (|a| ≥ 0.999: the expert already moves as fast as an action can)."""
+    from hipolicy_jax.data.replay_buffer import ReplayBuffer
+    from hipolicy_jax.data.windowing import delta_segment_coverage
+
+    buffer = ReplayBuffer.load(path)
+    actions = np.asarray(buffer.data["action"], np.float64)
+    cov = delta_segment_coverage(actions, buffer.episode_ends, chunk)
+    return {"data": os.path.relpath(path), "episodes": int(len(buffer.episode_ends)), "frames": int(len(actions)),
+            "strides": {str(s): {"windows": int(v.size), "median": float(np.median(v)),
+                                 "quartiles": [float(q) for q in np.percentile(v, [25, 75])]} for s, v in cov.items()},
+            "saturated_xyz": float(np.mean(np.abs(actions[:, :3]) >= 0.999))}
+
+
+def diagnose_table(args: DiagnoseArgs) -> str:
+    """Per task: the demos' segment coverage (``<task>_coverage.json``) and, per seed whose DP+HiPolicy evaluation is
+    recorded, its network at stride 1 on the same initial states (``runs.external.evaluate_report``, whose guided
+    pass is the campaign's, kept in the run → ``<task>_<variant>_seed<k>_eval.json``); made when missing (unless
+    ``--from-records``), then ``<results>/diagnose.md`` / ``.json`` / ``.png`` from those files and the records."""
+    from hipolicy_jax.campaigns.report import paired_cell
+    from hipolicy_jax.runs.external import evaluate_report
+    from hipolicy_jax.runs.store import read_inference
+    from hipolicy_jax.runs.train import finished
+
+    camp = campaign(args)
+    reader = campaign(dataclasses.replace(args, from_records=True))
+    dp, hip = COLUMNS[0], COLUMNS[1]
+    changes = dict(run_changes(args.budget, args.steps))
+    os.makedirs(args.results, exist_ok=True)
+    records, coverage = [], {}
+    for task in tqdm(args.tasks, desc="metaworld diagnose", unit="task", disable=not args.progress):
+        bare = task.partition(":")[2]
+        path = os.path.join(args.results, f"{bare}_coverage.json")
+        cfg = camp.run_config(task, hip, args.seeds[0], changes)
+        if not os.path.exists(path) and not args.from_records:
+            write_json(path, demo_coverage(camp.ensure_demos(cfg, args.seeds[0]), cfg.policy.chunk))
+        if os.path.exists(path):
+            coverage[task] = read_json(path)
+        for seed in args.seeds:
+            evs = {col: reader.evaluate(task, col, seed, changes) for col in (dp, hip)}
+            rows = {col: table_record(reader, task, col, seed, changes, ev) for col, ev in evs.items() if ev}
+            records += rows.values()
+            guided = evs[hip]
+            run_dir = camp.run_config(task, hip, seed, changes).out_dir()
+            path = os.path.join(args.results, f"{bare}_{os.path.basename(os.path.dirname(run_dir))}_seed{seed}_eval.json")
+            if guided is None:
+                continue
+            if not os.path.exists(path) and not args.from_records and finished(camp.run_config(task, hip, seed,
+                                                                                                changes)):
+                report = evaluate_report(run_dir, read_inference(run_dir), episodes=eval_episodes(args), seed=seed,
+                                         out=os.path.join(run_dir, "eval"), log=lambda msg: None)
+                write_json(path, report)
+            if not os.path.exists(path):
+                continue
+            report = read_json(path)
+            if report["params_sha256"] != guided["network"]["params_sha256"]:
+                raise ValueError(f"{path}: evaluated network {report['params_sha256'][:12]}, but the record of "
+                                 f"{task} DP+HiPolicy seed {seed} holds {guided['network']['params_sha256'][:12]}; "
+                                 f"delete the file and run `python -m experiments.metaworld diagnose` again")
+            plain = report["without_eg"]
+            records.append({**rows[hip], "column": STRIDE1, "periodic": None, "dp3_metric": None,
+                            **{k: plain[k] for k in ("success_rate", "mean_steps_success", "mean_steps",
+                                                     "mean_decisions", "stride1_frac", "mean_entropy", "success",
+                                                     "steps", "decisions")},
+                            "eval_s": 0.0 if report["reused"]["without_eg"] else None})
+    labels = [dp.label, hip.label, STRIDE1]
+    pairs = [(STRIDE1, dp.label), (hip.label, STRIDE1)]
+
+    def cells(task: str) -> list[str]:
+        cov = coverage.get(task, {}).get("strides", {})
+        hip_recs = [r for r in records if r["task"] == task and r["column"] == hip.label]
+        share = [np.mean([r.get(f"stride{s}_frac") or 0.0 for r in hip_recs]) for s in (1, 2, 3)]
+        return [*(f"{cov[s]['median']:.2f}" if s in cov else "–" for s in ("2", "3")),
+                f"{100 * coverage[task]['saturated_xyz']:.0f}" if task in coverage else "–",
+                " / ".join(f"{100 * v:.0f}" for v in share) if hip_recs else "–"]
+
+    rows = grouped_rows(args, records, labels, paired=pairs, groups=[("tasks", list(args.tasks))], extra=cells)
+    table = markdown_table(["Task", "coverage stride 2", "coverage stride 3", "xyz at bound (%)",
+                            "DP+HiPolicy strides 1 / 2 / 3 (% decisions)", *labels,
+                            *(f"{a} − {b} (points)" for a, b in pairs)], rows)
+    notes = ["**Post hoc: not part of the pre-registered protocol** (`results/metaworld/PROTOCOL.md`); its "
+             "evaluations never enter the campaign's table.",
+             "Coverage: a stride-s segment of Meta-World's actions (xyz moves of the hand's target, executed one "
+             "per control step) moves the hand by Σ_k a[t+1+ks]; the demo moved Σ_{i<8s} a[t+1+i] over the span "
+             "the segment stands for, while the gripper command follows the demo's schedule over that whole span. "
+             "Coverage = the executed move projected on the demo's, median over the demos' windows "
+             "(`data.windowing.delta_segment_coverage`): ~1/s means the segment lags its own gripper schedule by "
+             "a factor s. With the MJX tasks' absolute targets the segment ends where the demo did (coverage 1). "
+             "'xyz at bound': share of the demos' xyz action entries at ±1, where no segment can move faster.",
+             f"{STRIDE1}: each DP+HiPolicy network served again with entropy guidance off (always stride 1), on the "
+             f"same {eval_episodes(args)} initial states per seed as DP and DP+HiPolicy "
+             "(`python -m experiments.evaluate --checkpoint RUN`, its guided pass the campaign's, reused). "
+             f"{STRIDE1} − DP compares two networks at one execution; DP+HiPolicy − {STRIDE1} is one network, "
+             "guidance on vs off.", PAIRED_NOTE]
+    if len(args.tasks) > 1:
+        for new, base in pairs:
+            done = [t for t in args.tasks if any(r["task"] == t and r["column"] == new for r in records)]
+            if done:
+                notes.append(f"{new} − {base}, over the {len(done)} task(s) with every seed: "
+                             + paired_cell(records, args.seeds, done, new, base))
+    figure = success_by_task_figure(args, records, labels, "Meta-World, post hoc: DP+HiPolicy's network at stride 1")
+    return write_results(args, "Meta-World diagnosis: HiPolicy's strides on displacement actions (post hoc)", notes,
+                         table, records, figure)
+
+
+SUBCOMMANDS: dict[str, type] = {"pilot": PilotArgs, "main": MainArgs, "diagnose": DiagnoseArgs}
+BUILDERS = {"pilot": pilot_table, "main": main_table, "diagnose": diagnose_table}
 
 
 def build(args: MetaWorldArgs) -> str:
     return BUILDERS[type(args).TABLE](args)
 
 
-__all__ = ["BUILDERS", "COLUMNS", "MainArgs", "PilotArgs", "SUBCOMMANDS", "TASKS", "build", "choose_training_steps",
-           "main_jobs", "main_table", "pilot_table", "protocol_tasks"]
+__all__ = ["BUILDERS", "COLUMNS", "DiagnoseArgs", "MainArgs", "PilotArgs", "SUBCOMMANDS", "TASKS", "build", "choose_training_steps",
+           "demo_coverage", "diagnose_table", "main_jobs", "main_table", "pilot_table", "protocol_tasks",
+           "run_changes", "training_steps"]

@@ -7,8 +7,8 @@
 from hipolicy_jax.data.dataset import SequenceDataset, split_episodes
 from hipolicy_jax.data.normalizer import Normalizer, image_to_float
 from hipolicy_jax.data.replay_buffer import ReplayBuffer
-from hipolicy_jax.data.windowing import (action_offsets, gather_history, history_window_indices, obs_offsets,
-                                         sample_indices)
+from hipolicy_jax.data.windowing import (action_offsets, delta_segment_coverage, gather_history,
+                                         history_window_indices, obs_offsets, sample_indices)
 
 __all__ = [
     "ReplayBuffer",
@@ -21,4 +21,5 @@ __all__ = [
     "gather_history",
     "obs_offsets",
     "action_offsets",
+    "delta_segment_coverage",
 ]

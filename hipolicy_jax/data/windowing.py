@@ -89,3 +89,44 @@ def gather_history(history: dict[str, jnp.ndarray], chunk: ChunkConfig) -> dict[
                              f"got shape {frames.shape}")
         out[key] = jnp.take(frames, idx, axis=0)
     return out
+
+
+def delta_segment_coverage(actions: np.ndarray, episode_ends: np.ndarray, chunk: ChunkConfig,
+                           dims: tuple[int, ...] = (0, 1, 2), min_norm: float = 0.5) -> dict[int, np.ndarray]:
+    """How far a stride's segment moves the robot, when actions are per-step displacements, relative to the demo's
+    movement over the time that segment stands for.
+
+    A segment at stride s from frame t holds a[t+δ], a[t+δ+s], ..., a[t+δ+(L_c-1)s] and is executed one action per
+    control step. With absolute targets (the MJX tasks) its last target is the demo's at t+δ+(L_c-1)s, so it gets
+    where the demo got, s times sooner. With displacements (Meta-World: xyz moves of the hand's target) it moves
+    ``C = Σ_k a[t+δ+ks]`` while the demo moved ``D = Σ_{i<L_c s} a[t+δ+i]`` over the span, and any absolute channel
+    (a gripper command) still follows the demo's schedule over the whole span. Coverage is C projected on D,
+    ``C·D / |D|²``: 1 at stride 1, about 1/s for smooth motion.
+
+    Args:
+      actions: ``(N, A)`` actions of every frame (ReplayBuffer layout).
+      episode_ends: ``(E,)`` cumulative episode ends.
+      chunk: windowing configuration (strides, L_c, δ).
+      dims: the displacement channels of an action.
+      min_norm: windows whose demo displacement ``|D|`` is below it (action units) are left out (the robot holds
+        still: no direction to cover).
+
+    Returns:
+      ``{stride: (W,) coverage}`` over every window whose span lies inside its episode and moves at least
+      ``min_norm``, in time order.
+    """
+    actions = np.asarray(actions, np.float64)[:, list(dims)]
+    ends = check_episode_ends(episode_ends, actions.shape[0])
+    starts = np.concatenate([[0], ends[:-1]])
+    csum = np.concatenate([np.zeros((1, actions.shape[1])), np.cumsum(actions, axis=0)])  # csum[i] = Σ_{j<i} a[j]
+    out = {}
+    for s in sorted(set(chunk.segment_strides)):
+        span = chunk.chunk_len * s
+        first = [np.arange(a + chunk.action_offset, e - span + 1) for a, e in zip(starts, ends)]
+        first = np.concatenate(first) if first else np.zeros(0, np.int64)
+        executed = actions[first[:, None] + s * np.arange(chunk.chunk_len)[None, :]].sum(axis=1)  # (W, d) C
+        demo = csum[first + span] - csum[first]  # (W, d) D
+        norm2 = (demo ** 2).sum(axis=1)
+        keep = norm2 >= min_norm ** 2
+        out[s] = (executed * demo).sum(axis=1)[keep] / norm2[keep]
+    return out
