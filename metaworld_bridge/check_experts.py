@@ -1,6 +1,8 @@
 """How often Meta-World's scripted experts succeed on DP3's Medium, Hard and Very Hard tasks (v3).
 
     python -m metaworld_bridge.check_experts --seeds 50          # → results/metaworld/experts.json
+    python -m metaworld_bridge.check_experts --tasks assembly --strides 1 2 3 --action-spaces delta target \
+        --seeds 20 --max-steps 200 --out strided.json                 # the expert as a chunking policy per stride
 
 Every task runs its expert from the initial states of seeds 0..N-1 (``env.MetaWorldTask.reset``: the seeds the
 demos are collected from) until the first success or the step limit (``--max-steps``, default 500), without a camera. The JSON holds, per
@@ -19,18 +21,20 @@ import time
 
 import numpy as np
 
-from metaworld_bridge.env import MAX_STEPS, MetaWorldTask
+from metaworld_bridge.env import ACTION_SPACES, MAX_STEPS, MetaWorldTask
 from metaworld_bridge.tasks import DP3_GROUPS
 
 DEFAULT_OUT = os.path.join("results", "metaworld", "experts.json")
 
 
-def check_task(task: str, seeds: int, first_seed: int = 0, max_steps: int = MAX_STEPS) -> dict:
-    """Expert success of ``task`` over ``seeds`` initial states from ``first_seed``."""
-    env = MetaWorldTask(task, max_steps=max_steps)
+def check_task(task: str, seeds: int, first_seed: int = 0, max_steps: int = MAX_STEPS, stride: int | None = None,
+               action_space: str = "delta", chunk_len: int = 8) -> dict:
+    """Expert success of ``task`` over ``seeds`` initial states from ``first_seed``; with ``stride``, the expert
+    as a chunking policy at that stride (``MetaWorldTask.run_strided_expert``) in ``action_space``."""
+    env = MetaWorldTask(task, max_steps=max_steps, action_space=action_space)
     steps, failed = [], []
     for s in range(first_seed, first_seed + seeds):
-        ep = env.run_expert(s)
+        ep = env.run_expert(s) if stride is None else env.run_strided_expert(s, stride, chunk_len)
         (steps.append(ep.steps) if ep.success else failed.append(s))
     ok = np.asarray(steps)
     return {"successes": len(steps), "episodes": seeds, "success_rate": len(steps) / seeds,
@@ -47,10 +51,18 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--tasks", nargs="+", default=None, help="these tasks instead of --groups")
     parser.add_argument("--max-steps", type=int, default=MAX_STEPS,
                         help="step limit of an episode (Meta-World: 500; DP3 evaluates with 200)")
+    parser.add_argument("--strides", nargs="+", type=int, default=None,
+                        help="run the expert as a chunking policy at each of these strides (chunks of --chunk-len "
+                             "actions, every stride-th of its actions ahead) instead of step by step")
+    parser.add_argument("--action-spaces", nargs="+", default=["delta"], choices=list(ACTION_SPACES),
+                        help="with --strides: the action spaces its chunks are executed in")
+    parser.add_argument("--chunk-len", type=int, default=8, help="with --strides: actions per chunk (L_c)")
     parser.add_argument("--out", default=DEFAULT_OUT)
     args = parser.parse_args(argv)
     if args.seeds < 1:
         raise SystemExit(f"error: seeds: must be >= 1, got {args.seeds}")
+    if args.strides is not None:
+        return strided(args)
     groups = {"custom": tuple(args.tasks)} if args.tasks else {g: DP3_GROUPS[g] for g in args.groups}
     t0 = time.perf_counter()
     tasks, totals = {}, {}
@@ -81,6 +93,41 @@ def main(argv: list[str] | None = None) -> dict:
         json.dump(report, f, indent=1)
         f.write("\n")
     print(", ".join(f"{g}: {v['successes']}/{v['episodes']}" for g, v in totals.items()) + f" → {args.out}")
+    return report
+
+
+def strided(args) -> dict:
+    """``--strides``: per task, action space and stride, the chunking expert's success and steps → ``--out``."""
+    names = list(args.tasks) if args.tasks else [n for g in args.groups for n in DP3_GROUPS[g]]
+    t0 = time.perf_counter()
+    tasks: dict[str, dict] = {}
+    try:
+        for name in names:
+            for space in args.action_spaces:
+                for stride in args.strides:
+                    t = time.perf_counter()
+                    r = check_task(name, args.seeds, args.first_seed, args.max_steps, stride, space, args.chunk_len)
+                    tasks.setdefault(name, {}).setdefault(space, {})[str(stride)] = r
+                    mean = "-" if r["mean_steps"] is None else f"{r['mean_steps']:.1f}"
+                    print(f"{name:<18} {space:<6} stride {stride}  {r['successes']:>3}/{args.seeds}  mean steps "
+                          f"{mean:>6}  ({time.perf_counter() - t:.1f} s)", flush=True)
+    except ValueError as e:
+        raise SystemExit(f"error: {e}")
+    report = {
+        "what": "Meta-World v3 scripted experts executed as chunking policies: at each decision the expert runs "
+                f"{args.chunk_len} x stride steps ahead in the simulator (then restored) and every stride-th of its "
+                f"actions is executed, {args.chunk_len} per chunk, closed loop; 'delta': Meta-World's displacement "
+                "actions, 'target': absolute hand targets (MetaWorldTask.run_strided_expert)",
+        "seeds": list(range(args.first_seed, args.first_seed + args.seeds)), "max_steps": args.max_steps,
+        "chunk_len": args.chunk_len, "strides": args.strides, "action_spaces": args.action_spaces,
+        "metaworld": importlib.metadata.version("metaworld"), "mujoco": importlib.metadata.version("mujoco"),
+        "python": sys.version.split()[0], "seconds": round(time.perf_counter() - t0, 1), "tasks": tasks,
+    }
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w") as f:
+        json.dump(report, f, indent=1)
+        f.write("\n")
+    print(f"→ {args.out}")
     return report
 
 

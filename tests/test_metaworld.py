@@ -92,6 +92,60 @@ def test_collect_writes_the_project_layout(demos):
     np.testing.assert_array_equal(buf.episode_ends, other.episode_ends)
 
 
+@needs_venv
+def test_action_spaces_and_the_strided_expert(tmp_path):
+    """The bridge's two action spaces give the same expert episode; its absolute targets replayed open loop succeed;
+    a snapshot restores the simulation exactly; the expert as a chunking policy at stride 1 is the expert's own
+    episode; ``check_experts --strides`` records every (task, space, stride)."""
+    code = """
+import numpy as np
+from metaworld_bridge.env import MetaWorldTask
+delta, target = MetaWorldTask("assembly", 200), MetaWorldTask("assembly", 200, action_space="target")
+a, b = delta.run_expert(0), target.run_expert(0)
+assert a.success and b.success and a.steps == b.steps
+np.testing.assert_array_equal(a.frames["state"], b.frames["state"])
+np.testing.assert_array_equal(a.frames["action"][:, 3], b.frames["action"][:, 3])  # the gripper: the same
+assert np.abs(b.frames["action"][:, :3] - b.frames["state"][:, :3]).max() < 0.1  # world xyz, by the hand
+target.reset(0)
+for act in b.frames["action"]:
+    obs, success, truncated = target.step(act)
+assert success
+delta.reset(0)
+snap = delta.snapshot()
+first = [delta.step(a.frames["action"][i])[0] for i in range(10)]
+delta.restore(snap)
+again = [delta.step(a.frames["action"][i])[0] for i in range(10)]
+np.testing.assert_array_equal(np.stack(first), np.stack(again))
+c = delta.run_strided_expert(0, 1)
+assert c.success and c.steps == a.steps
+np.testing.assert_array_equal(c.frames["action"], a.frames["action"])
+try:
+    delta.run_strided_expert(0, 0)
+except ValueError as e:
+    assert "stride" in str(e)
+else:
+    raise AssertionError("stride 0 accepted")
+try:
+    MetaWorldTask("assembly", action_space="joint")
+except ValueError as e:
+    assert "action_space" in str(e) and "target" in str(e)
+else:
+    raise AssertionError("an unknown action space accepted")
+print("ok")
+"""
+    r = subprocess.run([PYTHON, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-3000:]
+    out = tmp_path / "strided.json"
+    r = bridge("metaworld_bridge.check_experts", "--tasks", "assembly", "--strides", "1", "3", "--action-spaces",
+               "delta", "target", "--seeds", "2", "--max-steps", "200", "--out", str(out))
+    assert r.returncode == 0, r.stderr[-2000:]
+    report = json.loads(out.read_text())
+    task = report["tasks"]["assembly"]
+    assert sorted(task) == ["delta", "target"] and all(sorted(v) == ["1", "3"] for v in task.values())
+    assert task["delta"]["1"]["successes"] == task["target"]["1"]["successes"] == 2
+    assert report["chunk_len"] == 8 and report["seeds"] == [0, 1]
+
+
 def _pointcloud_config(path: str, out: str) -> RunConfig:
     return RunConfig(task=f"metaworld:{TASK}", data=path, out=out, val_ratio=0.5,
                      policy=PolicyConfig(model=ModelConfig(size="tiny", fusion_heads=2),
@@ -400,6 +454,12 @@ def test_metaworld_campaign_end_to_end(tmp_path, monkeypatch):
     monkeypatch.setattr(external, "_run", lambda *a, **k: pytest.fail(f"ran the bridge again: {a}"))
     again = open(metaworld(parse_args(["diagnose", *diag, "--from-records"]))).read()
     assert again.split("| Task")[1:] == text.split("| Task")[1:]
+    assert "| – / – / – | – / – / – |" in text  # the chunking expert: not run yet
+    (tmp_path / "diag" / "strided_experts.json").write_text(json.dumps({"tasks": {"assembly": {
+        "delta": {"1": {"success_rate": 1.0}, "2": {"success_rate": 0.0}},
+        "target": {"1": {"success_rate": 1.0}, "2": {"success_rate": 0.35}, "3": {"success_rate": 0.05}}}}}))
+    text = open(metaworld(parse_args(["diagnose", *diag, "--from-records"]))).read()
+    assert "| 100 / 0 / – | 100 / 35 / 5 |" in text
 
 
 def test_demo_coverage_of_displacement_demos(tmp_path):

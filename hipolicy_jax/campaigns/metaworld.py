@@ -356,6 +356,10 @@ def main_table(args: MainArgs) -> str:
 # ---------------------------------------------------------------------------------------------- diagnose
 
 STRIDE1 = "DP+HiPolicy at stride 1"  # the same network as DP+HiPolicy, entropy guidance off (w/o EG)
+STRIDED_EXPERTS = "strided_experts.json"  # the bridge's chunking expert per stride and action space (diagnosis)
+STRIDED_EXPERTS_COMMAND = (".venv-metaworld/bin/python -m metaworld_bridge.check_experts --tasks <the protocol's tasks> "
+                           "--strides 1 2 3 --action-spaces delta target --seeds 20 --max-steps 200 --out "
+                           f"results/metaworld/diagnosis/{STRIDED_EXPERTS}")
 
 
 def demo_coverage(path: str, chunk) -> dict:
@@ -436,9 +440,20 @@ def diagnose_table(args: DiagnoseArgs) -> str:
                 f"{100 * coverage[task]['saturated_xyz']:.0f}" if task in coverage else "–",
                 " / ".join(f"{100 * v:.0f}" for v in share) if hip_recs else "–"]
 
-    rows = grouped_rows(args, records, labels, paired=pairs, groups=[("tasks", list(args.tasks))], extra=cells)
+    experts_path = os.path.join(args.results, STRIDED_EXPERTS)
+    experts = read_json(experts_path).get("tasks", {}) if os.path.exists(experts_path) else {}
+
+    def expert_cells(task: str) -> list[str]:
+        by_space = experts.get(task.partition(":")[2], {})
+        return [" / ".join(f"{100 * by_space[space][s]['success_rate']:.0f}" if s in by_space.get(space, {}) else "–"
+                           for s in ("1", "2", "3")) for space in ("delta", "target")]
+
+    rows = grouped_rows(args, records, labels, paired=pairs, groups=[("tasks", list(args.tasks))],
+                        extra=lambda t: [*cells(t), *expert_cells(t)])
     table = markdown_table(["Task", "coverage stride 2", "coverage stride 3", "xyz at bound (%)",
-                            "DP+HiPolicy strides 1 / 2 / 3 (% decisions)", *labels,
+                            "DP+HiPolicy strides 1 / 2 / 3 (% decisions)",
+                            "expert chunked at stride 1 / 2 / 3, displacements (%)",
+                            "the same, absolute targets (%)", *labels,
                             *(f"{a} − {b} (points)" for a, b in pairs)], rows)
     notes = ["**Post hoc: not part of the pre-registered protocol** (`results/metaworld/PROTOCOL.md`); its "
              "evaluations never enter the campaign's table.",
@@ -449,6 +464,12 @@ def diagnose_table(args: DiagnoseArgs) -> str:
              "(`data.windowing.delta_segment_coverage`): ~1/s means the segment lags its own gripper schedule by "
              "a factor s. With the MJX tasks' absolute targets the segment ends where the demo did (coverage 1). "
              "'xyz at bound': share of the demos' xyz action entries at ±1, where no segment can move faster.",
+             "Expert chunked: the scripted expert as a chunking policy, closed loop: at each decision it runs "
+             "8·s steps ahead in the simulator (then restored) and every s-th of its actions is executed, 8 per "
+             "chunk; as Meta-World's displacements, or as absolute hand targets (each turned into the displacement "
+             "that reaches it, at most 1 cm a step); success over the seeds of "
+             f"`{STRIDED_EXPERTS}` (`{STRIDED_EXPERTS_COMMAND}`; '–' until it is run). It is what HiPolicy's "
+             "stride-s segments would execute if the network were the expert.",
              f"{STRIDE1}: each DP+HiPolicy network served again with entropy guidance off (always stride 1), on the "
              f"same {eval_episodes(args)} initial states per seed as DP and DP+HiPolicy "
              "(`python -m experiments.evaluate --checkpoint RUN`, its guided pass the campaign's, reused). "
