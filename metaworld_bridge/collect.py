@@ -22,16 +22,17 @@ import time
 
 import numpy as np
 
-from metaworld_bridge.env import MAX_STEPS, PROPRIO_DIM, MetaWorldTask
+from metaworld_bridge.env import ACTION_SPACES, MAX_STEPS, PROPRIO_DIM, SUITE_OF_SPACE, MetaWorldTask
 from metaworld_bridge.pointcloud import (DP3_CAMERA_POS, DP3_CROP_HIGH, DP3_CROP_LOW, DP3_FLOOR_Z, DP3_IMAGE_SIZE,
                                          DP3_NUM_POINTS, CameraConfig, PointCloudCamera)
 from metaworld_bridge.store import write_buffer
 from metaworld_bridge.tasks import task_name
 
 
-def default_out(task: str, episodes: int) -> str:
-    """``data/metaworld_<task>_<episodes>.zarr`` (what ``experiments.train --task metaworld:<task>`` looks for)."""
-    return os.path.join("data", f"metaworld_{task_name(task)}_{episodes}.zarr")
+def default_out(task: str, episodes: int, action_space: str = "delta") -> str:
+    """``data/metaworld_<task>_<episodes>.zarr`` (what ``experiments.train --task metaworld:<task>`` looks for;
+    absolute targets: ``data/metaworld-target_<task>_<episodes>.zarr``, for ``metaworld-target:<task>``)."""
+    return os.path.join("data", f"{SUITE_OF_SPACE[action_space]}_{task_name(task)}_{episodes}.zarr")
 
 
 def _progress(total: int, desc: str, enabled: bool):
@@ -59,15 +60,15 @@ def _progress(total: int, desc: str, enabled: bool):
 
 def collect(task: str, episodes: int, seed: int = 0, *, num_points: int | None = DP3_NUM_POINTS,
             camera_size: int = DP3_IMAGE_SIZE, max_seeds: int | None = None, max_steps: int = MAX_STEPS,
-            progress: bool = True) -> tuple[list[dict[str, np.ndarray]], dict]:
-    """``episodes`` successful expert episodes of ``task`` (frames dicts) and a record of the collection (seeds
-    kept and failed, steps, camera and crop). ``num_points=None``: no point clouds."""
+            progress: bool = True, action_space: str = "delta") -> tuple[list[dict[str, np.ndarray]], dict]:
+    """``episodes`` successful expert episodes of ``task`` (frames dicts, actions in ``action_space``) and a record
+    of the collection (seeds kept and failed, steps, camera and crop). ``num_points=None``: no point clouds."""
     if episodes < 1:
         raise ValueError(f"episodes: must be >= 1, got {episodes}")
     max_seeds = max_seeds or 3 * episodes + 10
     if max_seeds < episodes:
         raise ValueError(f"max_seeds: must be >= episodes ({episodes}), got {max_seeds}")
-    env = MetaWorldTask(task, max_steps=max_steps)
+    env = MetaWorldTask(task, max_steps=max_steps, action_space=action_space)
     camera = None if num_points is None else PointCloudCamera(
         env.model, CameraConfig(size=camera_size, num_points=num_points))
     kept: list[dict[str, np.ndarray]] = []
@@ -101,7 +102,10 @@ def collect(task: str, episodes: int, seed: int = 0, *, num_points: int | None =
         "seeds": kept_seeds, "failed_seeds": failed_seeds, "steps": steps, "max_steps": max_steps,
         "episode_end": "first success (info['success'])", "proprio_dims": PROPRIO_DIM,
         "state": "Meta-World's 39-D observation (hand xyz, gripper opening, objects, previous frame, goal)",
-        "action": "xyz displacement of the hand target and gripper effort, clipped to [-1, 1]",
+        "action_space": action_space,
+        "action": ("xyz displacement of the hand target and gripper effort, clipped to [-1, 1]"
+                   if action_space == "delta" else
+                   "the hand target's absolute xyz (m, world frame) after the step, and the gripper effort"),
     }
     if camera is not None:
         record["camera"] = {"name": camera.config.camera, "pos": list(DP3_CAMERA_POS), "size": camera_size,
@@ -127,10 +131,13 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--no-point-cloud", action="store_true", help="state and action only")
     parser.add_argument("--max-seeds", type=int, default=None, help="seeds to try at most (default 3 x episodes + 10)")
     parser.add_argument("--max-steps", type=int, default=MAX_STEPS, help="step limit of an episode (Meta-World: 500)")
+    parser.add_argument("--action-space", default="delta", choices=list(ACTION_SPACES),
+                        help="record Meta-World's displacements (delta) or absolute hand targets (target; train "
+                             "with --task metaworld-target:<task>)")
     parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
-    out = args.out or default_out(args.task, args.episodes)
+    out = args.out or default_out(args.task, args.episodes, args.action_space)
     if os.path.lexists(out) and not args.overwrite:
         raise SystemExit(f"error: out: {out} already exists; pass --overwrite to replace it, or another --out")
     t0 = time.perf_counter()
@@ -138,7 +145,7 @@ def main(argv: list[str] | None = None) -> dict:
         episodes, record = collect(args.task, args.episodes, args.seed,
                                    num_points=None if args.no_point_cloud else args.num_points,
                                    camera_size=args.camera_size, max_seeds=args.max_seeds, max_steps=args.max_steps,
-                                   progress=not args.no_progress)
+                                   progress=not args.no_progress, action_space=args.action_space)
         data, ends = write_buffer(out, episodes, attrs=record, overwrite=args.overwrite)
     except (ValueError, RuntimeError, FileExistsError, OSError) as e:
         raise SystemExit(f"error: {e}")

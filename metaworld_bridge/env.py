@@ -46,6 +46,9 @@ ACTION_DIM = 4
 PROPRIO_DIM = 4  # hand xyz + gripper opening (DP3's agent_pos is 9-D: hand xyz + both fingertips' xyz)
 MAX_STEPS = 500
 ACTION_SPACES = ("delta", "target")
+# the project's task-name prefix of a policy trained on each action space (``metaworld:assembly``,
+# ``metaworld-target:assembly``; hipolicy_jax.envs.external.SUITES)
+SUITE_OF_SPACE = {"delta": "metaworld", "target": "metaworld-target"}
 _SIM_STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # everything mj_step advances (qpos, qvel, act, mocap, warmstart, ...)
 _ENV_STATE = ("curr_path_length", "_prev_obs", "_last_stable_obs")  # what the env carries between steps
 

@@ -45,7 +45,7 @@ import urllib.request
 
 import numpy as np
 
-from metaworld_bridge.env import ACTION_DIM, MAX_STEPS, OBS_DIM, MetaWorldTask
+from metaworld_bridge.env import ACTION_DIM, ACTION_SPACES, MAX_STEPS, OBS_DIM, SUITE_OF_SPACE, MetaWorldTask
 from metaworld_bridge.pointcloud import DP3_IMAGE_SIZE, CameraConfig, PointCloudCamera
 from metaworld_bridge.tasks import task_name
 
@@ -87,13 +87,16 @@ def check_server(url: str, timeout: float = 5.0) -> None:
     raise ConnectionError(f"url: {url}/healthz did not answer 200")
 
 
-def check_metadata(metadata: dict, task: str) -> dict[str, tuple[int, ...]]:
+def check_metadata(metadata: dict, task: str, action_space: str = "delta") -> dict[str, tuple[int, ...]]:
     """The observation shapes ``{key: (obs_span, ...)}`` the served policy reads, after checking it is a policy of
-    ``metaworld:<task>`` with 4-D actions; ``ValueError`` names the mismatch."""
+    ``metaworld:<task>`` (``metaworld-target:<task>`` for absolute targets) with 4-D actions; ``ValueError`` names
+    the mismatch."""
     served = metadata.get("task")
-    want = f"metaworld:{task_name(task)}"
+    want = f"{SUITE_OF_SPACE[action_space]}:{task_name(task)}"
     if served != want:
-        raise ValueError(f"task: the server's policy was trained on {served!r}, not {want!r}")
+        other = {f"{v}:{task_name(task)}": k for k, v in SUITE_OF_SPACE.items()}.get(served)
+        hint = f" (its actions are the {other!r} space: pass --action-space {other})" if other else ""
+        raise ValueError(f"task: the server's policy was trained on {served!r}, not {want!r}{hint}")
     if metadata.get("action_dim") != ACTION_DIM:
         raise ValueError(f"action_dim: the server's policy acts in {metadata.get('action_dim')} dims, Meta-World in "
                          f"{ACTION_DIM}")
@@ -115,8 +118,9 @@ def check_metadata(metadata: dict, task: str) -> dict[str, tuple[int, ...]]:
 class _Slot:
     """One env and its connection: runs one episode at a time."""
 
-    def __init__(self, task: str, make_client, shapes: dict, camera_size: int, max_steps: int):
-        self.env = MetaWorldTask(task, max_steps=max_steps)
+    def __init__(self, task: str, make_client, shapes: dict, camera_size: int, max_steps: int,
+                 action_space: str = "delta"):
+        self.env = MetaWorldTask(task, max_steps=max_steps, action_space=action_space)
         self.client = make_client()
         self.shapes = shapes
         self.camera = None
@@ -177,9 +181,10 @@ def _openpi_client(url: str, api_key: str | None):
 
 
 def evaluate(task: str, url: str, episodes: int, first_seed: int, *, num_envs: int = 10, max_steps: int = MAX_STEPS,
-             camera_size: int = DP3_IMAGE_SIZE, api_key: str | None = None, progress: bool = True) -> dict:
-    """Run ``episodes`` episodes of ``task`` (seeds ``first_seed`` ...) against the server at ``url``; → the record
-    (see the module docstring)."""
+             camera_size: int = DP3_IMAGE_SIZE, api_key: str | None = None, progress: bool = True,
+             action_space: str = "delta") -> dict:
+    """Run ``episodes`` episodes of ``task`` (seeds ``first_seed`` ...) against the server at ``url``, executing its
+    actions in ``action_space``; → the record (see the module docstring)."""
     if episodes < 1:
         raise ValueError(f"episodes: must be >= 1, got {episodes}")
     if num_envs < 1:
@@ -190,11 +195,11 @@ def evaluate(task: str, url: str, episodes: int, first_seed: int, *, num_envs: i
     t_start = time.perf_counter()
     first = _openpi_client(url, api_key)
     metadata = first.get_server_metadata()
-    shapes = check_metadata(metadata, task)
+    shapes = check_metadata(metadata, task, action_space)
     num_envs = min(num_envs, episodes)
     clients = iter([first])
-    slots = [_Slot(task, lambda: next(clients, None) or _openpi_client(url, api_key), shapes, camera_size, max_steps)
-             for _ in range(num_envs)]
+    slots = [_Slot(task, lambda: next(clients, None) or _openpi_client(url, api_key), shapes, camera_size, max_steps,
+                   action_space) for _ in range(num_envs)]
     seeds = list(range(first_seed, first_seed + episodes))
     done: list[EpisodeResult] = []
     wait_s = env_s = 0.0
@@ -236,7 +241,7 @@ def evaluate(task: str, url: str, episodes: int, first_seed: int, *, num_envs: i
     return {
         "what": "Meta-World closed-loop evaluation through the policy server (metaworld_bridge.evaluate)",
         "task": task_name(task), "url": url, "episodes": len(done), "first_seed": first_seed,
-        "seeds": [r.seed for r in done], "max_steps": max_steps, "envs": num_envs,
+        "seeds": [r.seed for r in done], "max_steps": max_steps, "envs": num_envs, "action_space": action_space,
         "success_rate": successes / len(done), "successes": successes,
         "mean_steps": float(np.mean([r.steps for r in done])),
         "policy": {k: metadata.get(k) for k in ("task", "run", "checkpoint_step", "strides", "chunk_len",
@@ -270,13 +275,16 @@ def main(argv: list[str] | None = None) -> dict:
                         help="rays per side for point clouds (as the demos: DP3 128)")
     parser.add_argument("--api-key", default=os.environ.get("HIPOLICY_API_KEY", ""),
                         help="sent as 'Authorization: Api-Key <key>' (default $HIPOLICY_API_KEY)")
+    parser.add_argument("--action-space", default="delta", choices=list(ACTION_SPACES),
+                        help="how the served policy's actions are executed: Meta-World's displacements (delta, a "
+                             "metaworld:<task> policy) or absolute hand targets (target, metaworld-target:<task>)")
     parser.add_argument("--out", default="", help="write the record here (JSON)")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     try:
         record = evaluate(args.task, args.url, args.episodes, args.first_seed, num_envs=args.envs,
                           max_steps=args.max_steps, camera_size=args.camera_size, api_key=args.api_key or None,
-                          progress=not args.no_progress)
+                          progress=not args.no_progress, action_space=args.action_space)
     except (ValueError, ConnectionError, RuntimeError) as e:
         raise SystemExit(f"error: {e}")
     record["command"] = " ".join(["python -m metaworld_bridge.evaluate", *(argv if argv is not None else sys.argv[1:])])

@@ -231,10 +231,47 @@ def test_metaworld_evaluation_errors_name_the_fix(served, tmp_path):
     url, _ = served
     r = bridge("metaworld_bridge.evaluate", "--task", "push", "--url", url, "--episodes", "1", "--no-progress")
     assert r.returncode != 0 and "trained on 'metaworld:assembly', not 'metaworld:push'" in r.stderr
+    r = bridge("metaworld_bridge.evaluate", "--task", TASK, "--url", url, "--episodes", "1", "--no-progress",
+               "--action-space", "target")
+    assert r.returncode != 0 and "not 'metaworld-target:assembly'" in r.stderr
+    assert "its actions are the 'delta' space: pass --action-space delta" in r.stderr
     r = bridge("metaworld_bridge.evaluate", "--task", TASK, "--url", "ws://127.0.0.1:9", "--episodes", "1",
                "--no-progress")
     assert r.returncode != 0 and "no policy server answers at ws://127.0.0.1:9" in r.stderr
     assert "python -m experiments.serve --checkpoint" in r.stderr
+
+
+@needs_venv
+def test_absolute_target_suite_end_to_end(demos, tmp_path):
+    """``metaworld-target:<task>``: the bridge records absolute hand targets, training refuses a buffer of the other
+    action space (naming the task and the command that fit), and the campaign's evaluation serves the policy to a
+    bridge that executes targets."""
+    import zarr
+
+    from hipolicy_jax.runs.external import evaluate_run
+
+    path = str(tmp_path / "target.zarr")
+    r = bridge("metaworld_bridge.collect", "--task", TASK, "--episodes", "2", "--out", path, "--no-point-cloud",
+               "--action-space", "target", "--no-progress")
+    assert r.returncode == 0, r.stderr[-2000:]
+    attrs = dict(zarr.open_group(path, mode="r").attrs)
+    assert attrs["action_space"] == "target" and "absolute" in attrs["action"]
+    buf, delta = ReplayBuffer.load(path), ReplayBuffer.load(demos[0][0])
+    np.testing.assert_array_equal(buf.data["state"], delta.data["state"])  # the same expert episodes
+    assert np.abs(buf.data["action"][:, :3] - buf.data["state"][:, :3]).max() < 0.1  # targets by the hand
+    ok = dict(eval=dataclasses.replace(RunConfig().eval, every=0), final_eval=False, progress=False)
+    with pytest.raises(ValueError, match=r"holds actions in the 'target' space.*pass --task metaworld-target:assembly"):
+        main(RunConfig(task=f"metaworld:{TASK}", data=path, dry_run=True, **ok))
+    with pytest.raises(ValueError, match=r"'delta' space.*--task metaworld:assembly.*--action-space target"):
+        main(RunConfig(task=f"metaworld-target:{TASK}", data=demos[0][0], dry_run=True, **ok))
+    cfg = RunConfig(task=f"metaworld-target:{TASK}", data=path, out=str(tmp_path / "run"), val_ratio=0.5,
+                    policy=PolicyConfig(model=ModelConfig(size="tiny", fusion_heads=2)),
+                    train=TrainConfig(batch_size=16, num_steps=6, warmup_steps=2, log_every=6, ckpt_every=6),
+                    inference=InferenceConfig(num_samples=4, num_steps=2, calib_windows=8), **ok)
+    assert main(cfg)["task"] == "metaworld-target:assembly"
+    rec = evaluate_run(cfg.out_dir(), episodes=2, first_seed=700, max_steps=MAX_STEPS, envs=2, log=lambda m: None)
+    assert rec["action_space"] == "target" and rec["policy"]["task"] == "metaworld-target:assembly"
+    assert rec["seeds"] == [700, 701] and all(1 <= ep["steps"] <= MAX_STEPS for ep in rec["per_episode"])
 
 
 @needs_venv

@@ -42,8 +42,8 @@ COLUMNS = (Column("DP", "state", DP), Column("DP+HiPolicy", "state"), Column("DP
 
 
 def full_name(task: str) -> str:
-    """``assembly`` → ``metaworld:assembly`` (a full name is kept)."""
-    return task if task.startswith("metaworld:") else f"metaworld:{task}"
+    """``assembly`` → ``metaworld:assembly``; a full name (``metaworld-target:assembly``) is kept."""
+    return task if ":" in task else f"metaworld:{task}"
 
 
 def protocol_tasks(count: int | None = None) -> tuple[str, ...]:
@@ -300,7 +300,7 @@ def main_table(args: MainArgs) -> str:
         if ev is not None:
             records.append(table_record(reader, task, col, seed, dict(changes), ev))
     labels = [c.label for c in COLUMNS]
-    group = dict((full_name(t), g) for t, g in TASKS)
+    group = {full: g for full in args.tasks for t, g in TASKS if full.partition(":")[2] == t}  # by bare task name
     groups = [(g, [t for t in args.tasks if group.get(t) == g]) for g in GROUPS]
     groups.append(("other", [t for t in args.tasks if t not in group]))
     pairs = [("DP+HiPolicy", "DP"), ("DP3+HiPolicy", "DP3")]
@@ -328,7 +328,7 @@ def main_table(args: MainArgs) -> str:
     metric_rows = grouped_rows(args, records, labels, metric="dp3_metric", groups=groups,
                                extra=lambda t: [pub(t, "dp_image"), pub(t, "dp3")])
     for row in metric_rows:  # the gap columns: per task only
-        row += [gap(row[0], c, k) if row[0].startswith("metaworld:") else "" for c, k, _ in gaps]
+        row += [gap(row[0], c, k) if ":" in row[0] else "" for c, k, _ in gaps]
     metric_table = markdown_table(["Task", "published DP (image)", "published DP3", *labels,
                                    *(f"{label} (points)" for _, _, label in gaps)], metric_rows)
     steps = args.training_steps()

@@ -29,20 +29,34 @@ class ExternalSuite:
     evaluate: str  # its closed-loop evaluation against a policy server: task, url, episodes, first_seed, envs,
     # max_steps, out (a JSON record of every episode)
     eval_max_steps: int  # the campaigns' episode step limit
+    source: str = ""  # the ``source`` attribute its bridge writes into a demo buffer (default ``<name>_bridge``)
+    action_space: str = "delta"  # the ``action_space`` attribute its demos must hold (absent: ``delta``)
+
+    @property
+    def bridge(self) -> str:
+        return self.source or f"{self.name}_bridge"
 
 
+_METAWORLD_COLLECT = (".venv-metaworld/bin/python -m metaworld_bridge.collect --task {task} --episodes {episodes} "
+                      "--out {path}")
+_METAWORLD_EVALUATE = (".venv-metaworld/bin/python -m metaworld_bridge.evaluate --task {task} --url {url} "
+                       "--episodes {episodes} --first-seed {first_seed} --envs {envs} --max-steps {max_steps} "
+                       "--out {out}")
 SUITES: dict[str, ExternalSuite] = {
     # Meta-World v3 (metaworld_bridge): 39-D observation (hand xyz, gripper opening, objects, previous frame, goal),
     # 4-D action (hand xyz displacement, gripper effort); proprioception = hand xyz + gripper (DP3 used a 9-D
-    # agent_pos: hand xyz and both fingertips)
+    # agent_pos: hand xyz and both fingertips); campaign episodes of 200 steps, DP3's (results/metaworld/PROTOCOL.md)
     "metaworld": ExternalSuite("metaworld", action_dim=4, state_dim=39, proprio_dim=4,
-                               setup="bash scripts/setup_metaworld.sh",
-                               collect=".venv-metaworld/bin/python -m metaworld_bridge.collect --task {task} "
-                                       "--episodes {episodes} --out {path}",
-                               evaluate=".venv-metaworld/bin/python -m metaworld_bridge.evaluate --task {task} "
-                                        "--url {url} --episodes {episodes} --first-seed {first_seed} --envs {envs} "
-                                        "--max-steps {max_steps} --out {out}",
-                               eval_max_steps=200),  # DP3's episode length (results/metaworld/PROTOCOL.md)
+                               setup="bash scripts/setup_metaworld.sh", collect=_METAWORLD_COLLECT,
+                               evaluate=_METAWORLD_EVALUATE, eval_max_steps=200),
+    # the same tasks with absolute actions: the hand target's xyz (m) and the gripper effort; the bridge turns a
+    # target into the displacement that reaches it (at most 1 cm a step), so a chunk executed at a larger stride
+    # moves the hand faster, as in the MJX tasks (results/metaworld/diagnosis/)
+    "metaworld-target": ExternalSuite("metaworld-target", action_dim=4, state_dim=39, proprio_dim=4,
+                                      setup="bash scripts/setup_metaworld.sh",
+                                      collect=_METAWORLD_COLLECT + " --action-space target",
+                                      evaluate=_METAWORLD_EVALUATE + " --action-space target", eval_max_steps=200,
+                                      source="metaworld_bridge", action_space="target"),
 }
 
 # Initial states of evaluations (results/metaworld/PROTOCOL.md): training seed k's main episodes start from
@@ -122,9 +136,10 @@ def _base_name(task: str) -> str:
 
 
 def check_demos(name: str, path: str) -> None:
-    """Raise ``ValueError`` when the demo buffer at ``path`` records (root attributes ``source`` = ``<suite>_bridge``,
-    ``task``) that it holds demos of another task of the suite. Buffers without these attributes pass (their
-    shapes are still checked against the task)."""
+    """Raise ``ValueError`` when the demo buffer at ``path`` records (root attributes ``source`` = the suite's
+    bridge, ``task``, ``action_space``) that it holds demos of another task, or actions of another action space
+    (absent: ``delta``), than the suite's. Buffers without these attributes pass (their shapes are still checked
+    against the task)."""
     import zarr
 
     try:
@@ -133,7 +148,16 @@ def check_demos(name: str, path: str) -> None:
         return
     suite, _, task = name.partition(":")
     recorded = attrs.get("task")
-    if attrs.get("source") == f"{suite}_bridge" and isinstance(recorded, str) and \
-            _base_name(recorded) != _base_name(task):
+    if attrs.get("source") != SUITES[suite].bridge:
+        return
+    if isinstance(recorded, str) and _base_name(recorded) != _base_name(task):
         raise ValueError(f"data: {path} holds demos of {suite}:{recorded}, not {name}; pass --task "
                          f"{suite}:{recorded} or other --data")
+    space = attrs.get("action_space", "delta")
+    if space != SUITES[suite].action_space:
+        other = [n for n, s in SUITES.items() if s.bridge == SUITES[suite].bridge and s.action_space == space]
+        raise ValueError(f"data: {path} holds actions in the {space!r} space, {name} trains on "
+                         f"{SUITES[suite].action_space!r} actions; pass "
+                         + (f"--task {other[0]}:{task}" if other else "other --data")
+                         + " or collect them: " + collect_hint(name, n := len(attrs.get("seeds") or ()) or 10,
+                                                               default_data_path(name, n)))
