@@ -477,7 +477,8 @@ def diagnose_table(args: DiagnoseArgs) -> str:
              "guidance on vs off.", PAIRED_NOTE]
     if len(args.tasks) > 1:
         for new, base in pairs:
-            done = [t for t in args.tasks if any(r["task"] == t and r["column"] == new for r in records)]
+            done = [t for t in args.tasks if {r["seed"] for r in records if r["task"] == t and r["column"] == new}
+                    >= set(args.seeds)]
             if done:
                 notes.append(f"{new} − {base}, over the {len(done)} task(s) with every seed: "
                              + paired_cell(records, args.seeds, done, new, base))
@@ -494,6 +495,6 @@ def build(args: MetaWorldArgs) -> str:
     return BUILDERS[type(args).TABLE](args)
 
 
-__all__ = ["BUILDERS", "COLUMNS", "DiagnoseArgs", "MainArgs", "PilotArgs", "SUBCOMMANDS", "TASKS", "build", "choose_training_steps",
-           "demo_coverage", "diagnose_table", "main_jobs", "main_table", "pilot_table", "protocol_tasks",
+__all__ = ["BUILDERS", "COLUMNS", "DiagnoseArgs", "MainArgs", "PilotArgs", "SUBCOMMANDS", "TASKS", "build",
+           "choose_training_steps", "demo_coverage", "diagnose_table", "main_jobs", "main_table", "pilot_table", "protocol_tasks",
            "run_changes", "training_steps"]
