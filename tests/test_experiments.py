@@ -751,6 +751,36 @@ def test_cost_model_plans_evaluations_at_the_compacted_rollout_rate(tmp_path):
     assert model.eval_seconds("metaworld_basketball", "chunk") == 100.0 * 2
 
 
+def test_cost_model_plans_a_hipolicy_evaluation_from_hipolicy_evaluations(tmp_path):
+    """A HiPolicy evaluation draws N samples a decision where DP draws one: a pending evaluation is estimated from
+    evaluations of policies with as many strides (on its task, else on any task) before the task's of another
+    stride count; records that do not name their policy's strides count for any."""
+    def write(name, variant, strides, seconds):
+        path = tmp_path / "records" / "metaworld" / name / "state" / variant / "seed0.json"
+        path.parent.mkdir(parents=True)
+        policy = {"chunk": {"strides": strides}} if strides else {}
+        path.write_text(json.dumps({"training": {}, "policy": policy, "evaluations": {"0": {
+            "settings": {"execution": "chunk"}, "eval_s": seconds, "cpu_cores": 1}}}))
+
+    write("metaworld_basketball", "dp_t4000", [1], 100.0)
+    write("metaworld_basketball", "hipolicy_t4000", [1, 2, 3], 1000.0)
+    write("metaworld_assembly", "dp_t4000", [1], 120.0)
+    model = CostModel(str(tmp_path / "records"), str(tmp_path / "runs"))
+    assert model.eval_seconds("metaworld_basketball", "chunk", 3) == 1000.0
+    assert model.eval_seconds("metaworld_basketball", "chunk", 1) == 100.0
+    # no HiPolicy record on assembly: basketball's HiPolicy evaluation, not assembly's DP one
+    assert model.eval_seconds("metaworld_assembly", "chunk", 3) == 1000.0
+    assert model.eval_seconds("metaworld_assembly", "chunk", 1) == 120.0
+    # a task with no record: the same stride count on any task (median), else everything
+    assert model.eval_seconds("metaworld_shelf-place", "chunk", 1) == 110.0
+    assert model.eval_seconds("metaworld_shelf-place", "chunk", 2) == 120.0  # no 2-stride record: all three
+    assert model.eval_seconds("metaworld_shelf-place", "te", 1) == 120.0  # no TE record anywhere: all three
+    write("metaworld_shelf-place", "unnamed", None, 50.0)  # strides unknown: only the wildcard selections
+    model = CostModel(str(tmp_path / "records"), str(tmp_path / "runs"))
+    assert model.eval_seconds("metaworld_shelf-place", "chunk", 3) == 1000.0
+    assert model.eval_seconds("metaworld_shelf-place", "chunk", 2) == 50.0  # the task's own, any stride count
+
+
 def test_deadline_starts_only_the_jobs_that_end_before_until():
     """--until: a job starts when its estimated CPU-seconds over the process's cores end before the limit, else the
     next one that fits runs; a run whose training was skipped keeps its later evaluations skipped; recorded jobs

@@ -535,3 +535,25 @@ def test_metaworld_budget_rules_by_hand():
     r = budget_rules(budget_s=50000, spent_s=4000, steps=1000, state_s_per_step=0.25, state_eval_s_per_100=150,
                      pc_s_per_step=3.0, pc_eval_s_per_100=600)
     assert r["state_tasks"] is None and r["pointcloud_tasks"] is None
+
+
+def test_the_plan_states_what_is_left_and_what_was_spent(tmp_path):
+    """``main --plan``: the pending jobs with their estimates (an unmeasured one counted apart), and what the
+    records spent so far beside spent + left."""
+    from hipolicy_jax.campaigns.metaworld import MainArgs, main_jobs, write_plan
+
+    args = MainArgs(tasks=("basketball",), results=str(tmp_path))
+    jobs = main_jobs(args)
+    assert [(j.task, j.col.label, j.seed) for j in jobs[:4]] == [
+        ("metaworld:basketball", "DP", 0), ("metaworld:basketball", "DP", 1), ("metaworld:basketball", "DP", 2),
+        ("metaworld:basketball", "DP+HiPolicy", 0)]
+    costs = [{"job": j, "done": i == 0, "trains": i > 1, "seconds": 0.0 if i == 0 else None if i == 5 else 1800.0}
+             for i, j in enumerate(jobs)]
+    spent = {"train_s": 3600.0, "runs": 1, "eval_s": 1800.0, "evaluations": 1}
+    text = open(write_plan(args, costs, spent)).read()
+    assert ("5 of 6 evaluations pending, 4 runs to train; estimated 2.0 CPU-hours for the 4 with a measured rate "
+            "(1 not yet measured).") in text
+    assert "Spent so far: 1.5 CPU-hours in the `metaworld` records (runs trained: 1, evaluations: 1" in text
+    assert "spent + left: 3.5 CPU-hours" in text
+    assert "| metaworld:basketball | DP+HiPolicy | 2 | yes | – |" in text
+    assert "| metaworld:basketball | DP | 0 |" not in text  # recorded: not pending

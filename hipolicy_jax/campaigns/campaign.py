@@ -352,8 +352,8 @@ class CostModel:
     """CPU-seconds a campaign's pending evaluation will take (wall time × the cores its process ran on, 2 where a
     record does not say), from the measured times the records hold: the run's training when it has none yet
     (seconds per step of the same network and batch on the same task, else on any task, else of any run of the
-    observation type, × the run's steps), plus the evaluation (the same task and execution strategy, else the task,
-    else any); 0 for an evaluation another table's column already makes. Medians, each over the first non-empty
+    observation type, × the run's steps), plus the evaluation (the same task, execution strategy and stride count,
+    else the strategy and stride count on any task, else the task, else any: ``eval_seconds``); 0 for an evaluation another table's column already makes. Medians, each over the first non-empty
     selection narrowed by preferences in turn (each keeps only the rows that have it, when any do): for
     evaluations, those made at today's rate — by the compacted rollout (``"rollout"``; an MJX evaluation without it
     was made by the older, slower vmapped one) or externally (a Meta-World evaluation, no MJX rollout) — then those
@@ -365,8 +365,9 @@ class CostModel:
         self.records, self.runs = records, runs
         # ((task, obs, training key), seconds per step, (cores stated,))
         self._train: list[tuple[tuple[str, str, str], float, tuple[bool, ...]]] = []
-        # ((task, execution), seconds, (at today's rollout rate, cores stated))
-        self._eval: list[tuple[tuple[str, str], float, tuple[bool, ...]]] = []
+        # ((task, execution, strides), seconds, (at today's rollout rate, cores stated)); strides: how many the
+        # policy has (one draws a single sample a decision, several draw N: a several-fold cost), None unknown
+        self._eval: list[tuple[tuple[str, str, int | None], float, tuple[bool, ...]]] = []
         self._spent: dict[str, dict[str, float]] = {}  # budget → CPU-seconds and counts of what the records hold
         for path in glob.glob(os.path.join(records, "**", "*.json"), recursive=True):
             rec = read_json(path)
@@ -384,6 +385,8 @@ class CostModel:
             if steps and wall:
                 self._train.append(((task, obs, key), wall * (cores or 2) / steps, (cores is not None,)))
             external = envs.external.is_external(rec.get("task") or "")
+            strides = ((rec.get("policy") or {}).get("chunk") or {}).get("strides")
+            kind = len(strides) if strides else None
             evaluations = [*rec.get("evaluations", {}).values(),
                            *(ev for old in rec.get("superseded", []) for ev in old["evaluations"].values())]
             for ev in evaluations:
@@ -391,7 +394,8 @@ class CostModel:
                     spent["eval_s"] += ev["eval_s"] * (ev.get("cpu_cores") or 2)
                     spent["evaluations"] += 1
                     current = external or evaluation_rollout(ev) == "compacted"
-                    self._eval.append(((task, ev["settings"]["execution"]), ev["eval_s"] * (ev.get("cpu_cores") or 2),
+                    self._eval.append(((task, ev["settings"]["execution"], kind),
+                                       ev["eval_s"] * (ev.get("cpu_cores") or 2),
                                        (current, ev.get("cpu_cores") is not None)))
 
     def spent(self, budget: str) -> dict[str, float]:
@@ -425,9 +429,13 @@ class CostModel:
         per_step = self._median(self._train, (task, obs, key), (None, obs, key), (None, obs, None))
         return None if per_step is None else per_step * cfg.train.num_steps
 
-    def eval_seconds(self, task: str, execution: str) -> float | None:
-        """``task``: its folder name (``_task_dir``)."""
-        return self._median(self._eval, (task, execution), (task, None), (None, None))
+    def eval_seconds(self, task: str, execution: str, strides: int | None = None) -> float | None:
+        """``task``: its folder name (``_task_dir``); ``strides``: how many the policy has (None: any). The same
+        task, strategy and stride count first, then another task's with the same strategy and stride count (a
+        HiPolicy evaluation draws N samples a decision where DP draws one: the stride count sets the cost more
+        than the task does), then the task's of any stride count, of any strategy, then any."""
+        return self._median(self._eval, (task, execution, strides), (None, execution, strides),
+                            (task, execution, None), (task, None, None), (None, None, None))
 
     def estimate(self, camp: Campaign, jobs: list[Job]) -> list[dict]:
         """Per job: whether it is done (recorded), whether it trains a run, its estimated seconds (0 when done or
@@ -441,7 +449,7 @@ class CostModel:
             evaluation = (cfg.out_dir(), camp._key(job.col, job.seed)[1])  # another table's column may share it
             seconds = 0.0
             if not done and evaluation not in evaluated:
-                parts = [self.eval_seconds(self._task_dir(cfg)[0], job.col.execution)]
+                parts = [self.eval_seconds(self._task_dir(cfg)[0], job.col.execution, len(cfg.policy.chunk.strides))]
                 parts += [self.train_seconds(cfg)] if needs_train else []
                 seconds = None if None in parts else sum(parts)
             evaluated.add(evaluation)

@@ -261,13 +261,20 @@ def main_jobs(args: MainArgs) -> list[Job]:
     return jobs
 
 
-def _plan(args: MainArgs, costs: list[dict]) -> str:
+def write_plan(args: MainArgs, costs: list[dict], spent: dict[str, float]) -> str:
+    """``<results>/plan.md``: the pending jobs with their estimated CPU-seconds and what the records spent so far.
+    ``costs``: ``CostModel.estimate`` rows; ``spent``: ``CostModel.spent`` of the budget's records. Returns the path."""
     pending = [c for c in costs if not c["done"]]
     known = [c["seconds"] for c in pending if c["seconds"] is not None]
+    spent_h = (spent["train_s"] + spent["eval_s"]) / 3600
     lines = ["# Meta-World campaign: what is left", "",
              f"{len(pending)} of {len(costs)} evaluations pending, {sum(c['trains'] for c in pending)} runs to "
              f"train; estimated {sum(known) / 3600:.1f} CPU-hours for the {len(known)} with a measured rate"
              + (f" ({len(pending) - len(known)} not yet measured)" if len(known) < len(pending) else "") + ".", "",
+             f"Spent so far: {spent_h:.1f} CPU-hours in the `{args.budget}` records (runs trained: {spent['runs']}, "
+             f"evaluations: {spent['evaluations']}; the pilot and every arm included); spent + left: "
+             f"{spent_h + sum(known) / 3600:.1f} CPU-hours. CPU-seconds are wall time x the cores a process ran on "
+             "(other jobs on those cores count too, so they are an upper bound).", "",
              markdown_table(["Task", "Column", "Seed", "Trains", "Estimated CPU-s"],
                             [[c["job"].task, c["job"].col.label, str(c["job"].seed), "yes" if c["trains"] else "",
                               "–" if c["seconds"] is None else f"{c['seconds']:.0f}"] for c in pending])]
@@ -288,9 +295,10 @@ def main_table(args: MainArgs) -> str:
     camp = campaign(args)
     jobs = main_jobs(args)
     if not args.from_records:
-        costs = CostModel(args.records, args.runs).estimate(camp, jobs)
+        model = CostModel(args.records, args.runs)
+        costs = model.estimate(camp, jobs)
         if args.plan:
-            return _plan(args, costs)
+            return write_plan(args, costs, model.spent(args.budget))
         work_off(camp, costs, lambda j: camp.run_config(j.task, j.col, j.seed, dict(j.changes)).out_dir(),
                  until=args.until, progress=args.progress)
     reader = campaign(dataclasses.replace(args, from_records=True))
@@ -497,4 +505,4 @@ def build(args: MetaWorldArgs) -> str:
 
 __all__ = ["BUILDERS", "COLUMNS", "DiagnoseArgs", "MainArgs", "PilotArgs", "SUBCOMMANDS", "TASKS", "build",
            "choose_training_steps", "demo_coverage", "diagnose_table", "main_jobs", "main_table", "pilot_table", "protocol_tasks",
-           "run_changes", "training_steps"]
+           "run_changes", "training_steps", "write_plan"]

@@ -723,8 +723,9 @@ def write_plan(args: "CampaignArgs", costs: list[dict]) -> str:
     lines = ["# Campaign plan", "", f"Command: `{command_line(args)}`", "",
              (f"{done} of {len(costs)} evaluations recorded; left: about **{total:.1f} CPU-hours** "
               "(estimated from the records' measured times: training seconds per step of the same network and "
-              "batch, else of its observation type; evaluation seconds of the same task and strategy, preferring "
-              "evaluations made by the compacted rollout, then records that state their cores)."), "",
+              "batch, else of its observation type; evaluation seconds of the same task, strategy and stride "
+              "count, preferring evaluations made by the compacted rollout, then records that state their "
+              "cores)."), "",
              markdown_table(["Regime", "Column", "Recorded", "Runs to train", "CPU-hours left"], rows)]
     os.makedirs(args.results, exist_ok=True)
     path = os.path.join(args.results, "campaign_plan.md")
