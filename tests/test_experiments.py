@@ -387,7 +387,8 @@ def test_findings_gather_each_paired_comparison_with_its_verdict(tmp_path):
     write_json(str(tmp_path / "main.json"), {"records": main})
     write_json(str(tmp_path / "execution.json"), {"records": execution})
     text = open(tables.findings_table(camp, built)).read()
-    rows = {line.split(" | ")[0][2:]: line for line in text.splitlines()[1:] if line.startswith("| ")}
+    first = text.split("\n## ")[0]  # the comparisons' table (the sections below have rows of their own)
+    rows = {line.split(" | ")[0][2:]: line for line in first.splitlines()[1:] if line.startswith("| ")}
     # columns: per task, the average (seed-level t), sign-flip p, episode-level McNemar p (30 episodes each way:
     # p = 1), leave one task out (needs 3 tasks), W/T/L
     assert rows["DP+HiPolicy vs DP"].split(" | ")[2:] == ["-100.0 loses", "+100.0 wins", "+0.0, p=1 (ties)", "1",
@@ -398,6 +399,23 @@ def test_findings_gather_each_paired_comparison_with_its_verdict(tmp_path):
     assert rows["HiPolicy vs w/o EG"].split(" | ")[2:4] == ["–", "+100.0 (1 seed: no test)"]  # same network
     assert "Over the 6 (comparison, task) cells: HiPolicy wins 1, ties 4, loses 1." in text
     assert "## Entropy-guided execution, same network: HiPolicy vs w/o EG" in text
+    # version 1's hierarchical bootstrap beside the t interval, per task and average with a verdict (the one-seed
+    # w/o EG pair has none): every episode differs by the same amount, so both intervals agree
+    side = text.split("## The verdict's interval beside version 1's hierarchical bootstrap")[1]
+    assert "| DP+HiPolicy vs DP | 100 demos (main) | press_button | -100.0 loses | -100.0 loses | yes |" in side
+    assert "| HiPolicy vs DP+AAC | 100 demos (execution) | Average | +0.0 ties | +0.0 ties | yes |" in side
+    assert "They give the same verdict in 9 of 9 cells." in side and "w/o EG" not in side
+
+
+def test_interval_summary_names_the_cells_the_two_intervals_split():
+    rows = [["A vs B", "100 demos (main)", "t1", "+5.0 [-1.0, +11.0] ties", "+5.0 [+1.0, +9.0] wins", "**no**",
+             "ties", "wins"],
+            ["A vs B", "100 demos (main)", "t2", "+5.0 [+1.0, +9.0] wins", "+5.0 [+2.0, +8.0] wins", "yes",
+             "wins", "wins"]]
+    text = tables.interval_summary(rows)
+    assert text.endswith("They give the same verdict in 1 of 2 cells; they split on: A vs B, 100 demos (main), t1 "
+                         "(t: ties, bootstrap: wins).")
+    assert tables.interval_summary(rows[1:]).endswith("the same verdict in 1 of 1 cells.")
 
 
 def test_paired_cell_is_seed_level():

@@ -302,6 +302,57 @@ def test_training_budget_rows_recompute_from_the_records(findings):
             _check_cell(cell, _success_diffs(pairs) if pairs else None, f"budget {steps}, {task}")
 
 
+def _bootstrap(per_task: list[list[np.ndarray]], resamples: int = 10_000, seed: int = 12345):
+    """Version 1's hierarchical bootstrap, written again: per resample and task, 3 seeds drawn with replacement and
+    each drawn seed's episodes with replacement; the resample's value is the mean over tasks of the mean of the
+    drawn seeds' episode means; the 2.5 / 97.5 % quantiles. Another random stream than the project's."""
+    rng = np.random.default_rng(seed)
+    values = np.zeros(resamples)
+    for groups in per_task:
+        total = np.zeros(resamples)
+        for _ in range(len(groups)):
+            pick = rng.integers(0, len(groups), resamples)
+            for j, g in enumerate(groups):
+                chosen = pick == j
+                total[chosen] += g[rng.integers(0, g.size, (int(chosen.sum()), g.size))].mean(axis=1)
+        values += total / len(groups)
+    values /= len(per_task)
+    return np.quantile(values, 0.025), np.quantile(values, 0.975)
+
+
+def test_bootstrap_beside_the_t_interval_recomputes_from_the_records(findings):
+    """Every row of the side-by-side section: the t cell as the main table's, the hierarchical bootstrap's interval
+    from an independent resampling (within 1 point: Monte Carlo error), each verdict, and the summary's count."""
+    title = [t for t in findings if t.startswith("The verdict's interval beside")]
+    if not title:
+        pytest.skip("no side-by-side section yet")
+    rows, same = findings[title[0]], 0
+    for comparison, regime, task, t_cell, boot_cell, agree in rows:
+        new, base = comparison.split(" vs ")
+        suffix_of = (lambda t: "") if regime.startswith("100 demos") else _rlow_suffix
+        tasks = TASKS if task == "Average" else (task,)
+        groups = [_success_diffs(_pairs(t, new, base, suffix_of(t))) for t in tasks]
+        what = f"{comparison}, {regime}, {task}"
+        if task == "Average":
+            mean, low, high, _ = _welch([_seed_level(g) for g in groups])
+        else:
+            mean, low, high = _seed_level(groups[0])[:3]
+        m, lo, hi, _, t_verdict = _parse(t_cell)
+        for printed, value, part in ((m, mean, "mean"), (lo, low, "low"), (hi, high, "high")):
+            _close(printed, 100 * value, f"{what} (t {part})")
+        assert t_verdict == _verdict(low, high), what
+        b_low, b_high = _bootstrap(groups)
+        bm, blo, bhi, _, b_verdict = _parse(boot_cell)
+        _close(bm, 100 * mean, f"{what} (bootstrap mean)")
+        assert abs(blo - 100 * b_low) <= 1.0 and abs(bhi - 100 * b_high) <= 1.0, (what, blo, bhi, b_low, b_high)
+        if min(abs(b_low), abs(b_high)) > 0.01:  # a bound within a point of 0 may fall either side
+            assert b_verdict == _verdict(b_low, b_high), what
+        assert agree == ("yes" if t_verdict == b_verdict else "**no**"), what
+        same += agree == "yes"
+    with open(FINDINGS) as f:
+        assert f"They give the same verdict in {same} of {len(rows)} cells" in f.read()
+
+
 # ------------------------------------------------------------------------------------------------------- Meta-World
 
 METAWORLD = os.path.join(ROOT, "results", "metaworld", "main.md")

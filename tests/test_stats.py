@@ -106,6 +106,48 @@ def test_verdict_follows_the_interval():
     assert stats.verdict(stats.Estimate(0.1, -0.02, 0.2)) == "ties"
 
 
+def test_hierarchical_bootstrap_by_hand():
+    """Version 1's interval: the point is the mean of seed means (of task means); equal episodes everywhere give a
+    zero-width interval at that value; one seed's episodes are resampled alone; one value has no interval; the
+    same seed gives the same interval, and it sits inside the range of the possible resample means."""
+    one = stats.hierarchical_bootstrap([{0: [1.0, 1.0], 1: [1.0, 1.0, 1.0]}])
+    assert (one.mean, one.low, one.high, one.seeds) == (1.0, 1.0, 1.0, 2)
+    assert math.isnan(one.p)  # no test: an interval only
+    two = stats.hierarchical_bootstrap([{0: [0.0, 1.0], 1: [1.0, 1.0, 1.0, 1.0]}])
+    assert two.mean == 0.75
+    # resample means lie in [0, 1]; a slot of seed 1 is always 1, a slot of seed 0 is 0, 0.5 or 1
+    assert 0.0 <= two.low < two.mean < two.high == 1.0
+    assert stats.hierarchical_bootstrap([{0: [0.0, 1.0], 1: [1.0] * 4}]) == two  # deterministic
+    single = stats.hierarchical_bootstrap([{0: [0.25]}])
+    assert single.mean == 0.25 and math.isnan(single.low)
+    # one seed of 0/1 outcomes: the episode bootstrap of a mean of 50 % over 100 episodes ≈ ±9.8 points
+    half = stats.hierarchical_bootstrap([{0: [0.0, 1.0] * 50}], resamples=20_000)
+    assert abs(half.low - (0.5 - 1.96 * 0.05)) < 0.012 and abs(half.high - (0.5 + 1.96 * 0.05)) < 0.012
+    # two tasks: the mean of the task means, each task resampled on its own
+    avg = stats.hierarchical_bootstrap([{0: [1.0], 1: [1.0]}, {0: [0.0], 1: [0.0]}])
+    assert (avg.mean, avg.low, avg.high, avg.seeds) == (0.5, 0.5, 0.5, 4)
+    assert stats.hierarchical_bootstrap([]).mean != stats.hierarchical_bootstrap([]).mean  # NaN
+
+
+def test_hierarchical_bootstrap_under_covers_when_seeds_differ():
+    """Why version 2's verdict uses the t interval over seeds: with 3 networks whose success rates differ, the
+    bootstrap's percentile interval holds the true mean in clearly fewer than 95 % of simulated cells (version 2
+    measured 81–89 %), where the t interval holds it at about 95 % (``test_interval_covers_at_the_nominal_level``).
+    """
+    rng = np.random.default_rng(5)
+    p, sd, reps, hits_boot, hits_t = 0.5, 0.15, 200, 0, 0
+    truth = np.clip(p + np.random.default_rng(1).normal(0, sd, 400_000), 0, 1).mean()
+    for i in range(reps):
+        rates = np.clip(p + rng.normal(0, sd, 3), 0, 1)
+        groups = {s: (rng.random(50) < r).astype(float) for s, r in enumerate(rates)}
+        boot = stats.hierarchical_bootstrap([groups], resamples=1000, seed=i)
+        t = stats.seed_mean(groups, bounds=(0.0, 1.0))
+        hits_boot += boot.low <= truth <= boot.high
+        hits_t += t.low <= truth <= t.high
+    # 200 cells: a standard error of about 2.5 points on each coverage
+    assert hits_boot / reps < 0.90 < hits_t / reps, (hits_boot / reps, hits_t / reps)
+
+
 def simulate_coverage(seeds, episodes, seed_sd, p, reps=400, rng_seed=0):
     """Fraction of simulated cells whose 95 % interval holds the true mean success: per seed a success rate drawn
     around ``p`` with sd ``seed_sd`` (clipped to [0, 1]: the network), then ``episodes`` Bernoulli episodes."""

@@ -124,9 +124,9 @@ class Paired(NamedTuple):
         return self.diff.p
 
 
-def paired(records: list[dict], seeds, tasks, new: str, base: str, metric: str = "success_rate") -> Paired | None:
-    """``new`` − ``base`` pooled over ``tasks`` (each task's seeds both columns have, episode by episode; for
-    ``mean_steps_success`` the episodes both succeeded in); None while a task has no pair."""
+def _paired_outcomes(records: list[dict], seeds, tasks, new: str, base: str, metric: str):
+    """(per task ``new``'s and ``base``'s outcomes, per task the per-episode differences on the seeds both have);
+    the differences None while a task has no pair. Refuses evaluations of different networks within one run."""
     for t in tasks:
         check_one_network(records, seeds, t, new, base)
     a = [outcomes(records, metric, seeds, task=t, column=new) for t in tasks]
@@ -136,7 +136,14 @@ def paired(records: list[dict], seeds, tasks, new: str, base: str, metric: str =
         shared = sorted(set(x) & set(y))
         if shared and all(x[s].size == y[s].size > 1 for s in shared):
             diffs.append(stats.paired_groups({s: x[s] for s in shared}, {s: y[s] for s in shared}))
-    if len(diffs) < len(tasks):  # a task without a pair: no pooled comparison over these tasks yet
+    return a, b, (diffs if len(diffs) == len(tasks) else None)
+
+
+def paired(records: list[dict], seeds, tasks, new: str, base: str, metric: str = "success_rate") -> Paired | None:
+    """``new`` − ``base`` pooled over ``tasks`` (each task's seeds both columns have, episode by episode; for
+    ``mean_steps_success`` the episodes both succeeded in); None while a task has no pair."""
+    a, b, diffs = _paired_outcomes(records, seeds, tasks, new, base, metric)
+    if diffs is None:  # a task without a pair: no pooled comparison over these tasks yet
         return None
     bounds = DIFF_BOUNDS if metric == "success_rate" else None
     per_task = tuple(stats.seed_mean(d, bounds=bounds) for d in diffs)
@@ -148,6 +155,14 @@ def paired(records: list[dict], seeds, tasks, new: str, base: str, metric: str =
         _, _, p = stats.mcnemar_exact({k: v > 0 for k, v in pooled_a.items()},
                                       {k: v > 0 for k, v in pooled_b.items()})
     return Paired(iv, p, stats.sign_flip_p(diffs), per_task)
+
+
+def paired_bootstrap(records: list[dict], seeds, tasks, new: str, base: str) -> stats.Estimate | None:
+    """``new`` − ``base`` success pooled over ``tasks`` as ``paired`` pairs it, with version 1's hierarchical
+    bootstrap interval (``stats.hierarchical_bootstrap``) instead of the t interval; None while a task has no
+    pair."""
+    _, _, diffs = _paired_outcomes(records, seeds, tasks, new, base, "success_rate")
+    return None if diffs is None else stats.hierarchical_bootstrap(diffs)
 
 
 def verdict_text(c: Paired) -> str:

@@ -27,7 +27,8 @@ from hipolicy_jax.campaigns.campaign import (README_BEGIN, README_END, Campaign,
                                         shard, update_readme)
 from hipolicy_jax.runs.lock import RunLockedError
 from hipolicy_jax.campaigns.report import (RATE_BOUNDS, bar_figure, changes_text, ci, cost_note, interval_text, leave_one_out,
-                                      markdown_table, outcomes, p_text, paired, paired_cell, relative_gain,
+                                      markdown_table, outcomes, p_text, paired, paired_bootstrap, paired_cell,
+                                      relative_gain,
                                       stride_cell, task_mean, verdict_text)
 from hipolicy_jax.runs.store import read_json, write_json
 from hipolicy_jax.runs.train import RunConfig, cpu_cores
@@ -783,6 +784,39 @@ def speed_rows(args: PaperArgs, records: list[dict], seeds, tasks) -> list[list[
     return rows
 
 
+def interval_comparison(records: list[dict], seeds, tasks: list[str], new: str, base: str,
+                        table: str) -> list[list[str]]:
+    """Per task and on average (several tasks), ``new`` − ``base`` success with the verdict's t interval over seeds
+    and with version 1's hierarchical bootstrap interval, each with the verdict it gives: rows
+    ``[comparison, table, task, t cell, bootstrap cell, same?, t verdict, bootstrap verdict]``; pairs with one seed
+    (no t interval) are left out."""
+    out = []
+    for label, ts in [(task, [task]) for task in tasks] + ([("Average", tasks)] if len(tasks) > 1 else []):
+        c = paired(records, seeds, ts, new, base)
+        if c is None or stats.verdict(c.diff) not in VERDICTS:
+            continue
+        boot = paired_bootstrap(records, seeds, ts, new, base)
+        tv, bv = stats.verdict(c.diff), stats.verdict(boot)
+        out.append([f"{new} vs {base}", table, label, f"{interval_text(c.diff, 100.0, signed=True)} {tv}",
+                    f"{interval_text(boot, 100.0, signed=True)} {bv}", "yes" if tv == bv else "**no**", tv, bv])
+    return out
+
+
+def interval_summary(rows: list[list[str]]) -> str:
+    """One paragraph on ``interval_comparison`` rows: how often the two intervals give the same verdict and which
+    cells they split."""
+    split = [r for r in rows if r[6] != r[7]]
+    text = (f"The same paired differences (the records of version 2, one network each) with two intervals: the t "
+            f"interval over seeds, whose verdict the tables report, and version 1's hierarchical bootstrap over "
+            f"seeds × episodes (`stats.hierarchical_bootstrap`, 10,000 resamples, percentile interval), which "
+            f"treats the 3 trained networks as the whole population and under-covers when they differ "
+            f"(`tests/test_stats.py`). They give the same verdict in {len(rows) - len(split)} of {len(rows)} cells")
+    if not split:
+        return text + "."
+    return text + "; they split on: " + "; ".join(
+        f"{r[0]}, {r[1]}, {r[2]} (t: {r[6]}, bootstrap: {r[7]})" for r in split) + "."
+
+
 def findings_table(args: "CampaignArgs", tables: list[PaperArgs]) -> str | None:
     """``<results>/findings.md``: every paired comparison of ``FINDINGS`` in the built tables, one row each — per
     task the success difference in points on the shared initial states with its 95 % interval over seeds and
@@ -791,7 +825,7 @@ def findings_table(args: "CampaignArgs", tables: list[PaperArgs]) -> str | None:
     same-network speed claim (HiPolicy vs w/o EG) and, when built, the training-budget rows; read from the tables'
     JSON (their records); → its path, None before any table holds a comparison."""
     rows, tally = [], dict.fromkeys(VERDICTS, 0)
-    speed, budget_rows = [], []
+    speed, budget_rows, interval_rows = [], [], []
     for t in tables:
         records = _table_json(args, t)
         if records is None:
@@ -827,6 +861,8 @@ def findings_table(args: "CampaignArgs", tables: list[PaperArgs]) -> str | None:
             for v in VERDICTS:
                 tally[v] += counts[v]
             avg = paired(records, seeds, list(t.tasks), new, base)
+            interval_rows += interval_comparison(records, seeds, list(t.tasks), new, base,
+                                                 f"{regime} ({results_name(t)})")
             rows.append([f"{new} vs {base}", f"{regime} ({results_name(t)})", *cells,
                          paired_cell(records, seeds, list(t.tasks), new, base),
                          "–" if avg is None else p_text(avg.sign_flip_p),
@@ -862,6 +898,12 @@ def findings_table(args: "CampaignArgs", tables: list[PaperArgs]) -> str | None:
     if budget_rows:
         lines += ["", "## Training budget: DP+HiPolicy − DP (points) by training steps (budget.md)", "",
                   markdown_table(["Training", *args.tasks], budget_rows)]
+    if interval_rows:
+        lines += ["", "## The verdict's interval beside version 1's hierarchical bootstrap", "",
+                  interval_summary(interval_rows), "",
+                  markdown_table(["Comparison", "Demos (table)", "Task", "t interval over seeds (verdict)",
+                                  "Hierarchical bootstrap (its verdict)", "Same verdict"],
+                                 [r[:6] for r in interval_rows])]
     out = os.path.join(args.results, "findings.md")
     with open(out, "w") as f:
         f.write("\n".join(lines) + "\n")
