@@ -215,7 +215,9 @@ def cost_note(records: list[dict]) -> str:
 def bar_figure(path: str, groups: list[str], panels: list[tuple[str, dict[str, list[dict]]]], title: str,
                scale: float = 1.0, bounds: list | None = None) -> str:
     """Grouped bar chart(s): per panel (ylabel, {series: per-group per-seed outcomes}), the mean with its 95 %
-    interval over seeds as the error bar (clipped to the panel's ``bounds`` entry, e.g. (0, 1) for success)."""
+    interval over seeds as the error bar (clipped to the panel's ``bounds`` entry, e.g. (0, 1) for success). A
+    series with no value in any group is left out (legend included); a measured mean of 0 is labelled '0' so that
+    it reads apart from a missing one."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -225,17 +227,24 @@ def bar_figure(path: str, groups: list[str], panels: list[tuple[str, dict[str, l
                              squeeze=False)
     for i_panel, (ax, (ylabel, series)) in enumerate(zip(axes[0], panels)):
         panel_bounds = bounds[i_panel] if bounds else None
-        width = 0.8 / max(len(series), 1)
+        estimates = {name: [stats.seed_mean(g, bounds=panel_bounds) for g in per_group]
+                     for name, per_group in series.items()}
+        estimates = {name: ivs for name, ivs in estimates.items() if any(np.isfinite(iv.mean) for iv in ivs)}
+        width = 0.8 / max(len(estimates), 1)
         x = np.arange(len(groups))
-        for i, (name, per_group) in enumerate(series.items()):
-            ivs = [stats.seed_mean(g, bounds=panel_bounds) for g in per_group]
+        for i, (name, ivs) in enumerate(estimates.items()):
             means = np.array([iv.mean for iv in ivs]) * scale
             err = np.array([[iv.mean - iv.low, iv.high - iv.mean] for iv in ivs]).T * scale
-            ax.bar(x + (i - (len(series) - 1) / 2) * width, means, width, yerr=np.nan_to_num(err), capsize=2,
-                   label=name)
+            pos = x + (i - (len(estimates) - 1) / 2) * width
+            bars = ax.bar(pos, means, width, yerr=np.nan_to_num(err), capsize=2, label=name)
+            for p, m in zip(pos, means):
+                if m == 0.0:
+                    ax.annotate("0", (p, 0.0), xytext=(0, 2), textcoords="offset points", ha="center",
+                                fontsize=6, color=bars.patches[0].get_facecolor())
         ax.set_xticks(x, groups, rotation=20, ha="right", fontsize=8)
         ax.set_ylabel(ylabel)
-        ax.legend(fontsize=7)
+        if estimates:
+            ax.legend(fontsize=7)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -528,13 +528,16 @@ def budget_table(args: BudgetArgs) -> str:
                 err = np.array([[100 * (iv.mean - iv.low), 100 * (iv.high - iv.mean)] for _, iv in pts]).T
                 ax.errorbar(x, m, yerr=err, marker="o", capsize=3, label=c.label, color=f"C{j}")
             ax.set_xscale("log")
+            ax.minorticks_off()  # the log axis' minor labels (3×10³ ...) would overprint the step counts
             ax.set_xticks(list(args.steps), [f"{n:,}" for n in args.steps])
-            ax.set_xlabel("training steps (batch 64)")
+            ax.set_xlim(min(args.steps) / 1.3, max(args.steps) * 1.3)
+            ax.set_xlabel(f"training steps (batch {BUDGETS[args.budget].train.batch_size})")
             ax.set_ylabel("success rate (%)")
             ax.set_ylim(-3, 103)
             ax.set_title(task, fontsize=10)
             ax.grid(alpha=0.3)
-            ax.legend(fontsize=8)
+            if ax.get_legend_handles_labels()[0]:
+                ax.legend(fontsize=8)
         fig.suptitle("success vs training budget (95 % t intervals over seeds)", fontsize=10)
         fig.tight_layout()
         fig.savefig(path, dpi=110)
