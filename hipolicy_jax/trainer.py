@@ -168,19 +168,40 @@ def restore_newest_readable(directory: str, abstract, meta: dict):
     return None, None
 
 
+def _logged_train_rows(out_dir: str, upto: int) -> dict[int, dict]:
+    """The train rows of ``metrics.jsonl`` up to step ``upto`` by step; a step logged twice (re-run after a
+    resume) keeps its latest row."""
+    path = os.path.join(out_dir, "metrics.jsonl")
+    rows: dict[int, dict] = {}
+    if os.path.exists(path):
+        with open(path) as f:
+            for line in f:
+                row = json.loads(line)
+                if row.get("kind") == "train" and row["step"] <= upto:
+                    rows[row["step"]] = row
+    return rows
+
+
+def logged_train_cpu_seconds(out_dir: str, upto: int) -> float | None:
+    """Process CPU seconds the logged training steps up to ``upto`` took (each train row's steps since the previous
+    row × its ``cpu_s_per_step``; a step logged twice counts once): what earlier sessions of a resumed run used.
+    None when a row predates the CPU measurement (no ``cpu_s_per_step``); 0 without rows."""
+    seconds, prev = 0.0, 0
+    rows = _logged_train_rows(out_dir, upto)
+    for step in sorted(rows):
+        if rows[step].get("cpu_s_per_step") is None:
+            return None
+        seconds += (step - prev) * rows[step]["cpu_s_per_step"]
+        prev = step
+    return seconds
+
+
 def logged_train_seconds(out_dir: str, upto: int) -> float:
     """Seconds the logged training steps up to ``upto`` took, from ``metrics.jsonl`` (each train row's steps since
     the previous row / its ``steps_per_s``; a step logged twice — re-run after a resume — counts once, its latest
     row): what earlier sessions of a resumed run spent, so a run's wall time covers all its sessions."""
-    path = os.path.join(out_dir, "metrics.jsonl")
-    if not os.path.exists(path):
-        return 0.0
-    rate: dict[int, float] = {}
-    with open(path) as f:
-        for line in f:
-            row = json.loads(line)
-            if row.get("kind") == "train" and row["step"] <= upto and row.get("steps_per_s"):
-                rate[row["step"]] = row["steps_per_s"]
+    rate = {step: row["steps_per_s"] for step, row in _logged_train_rows(out_dir, upto).items()
+            if row.get("steps_per_s")}
     seconds, prev = 0.0, 0
     for step in sorted(rate):
         seconds += (step - prev) / rate[step]
@@ -265,7 +286,7 @@ def fit(cfg: PolicyConfig, train_cfg: TrainConfig, dataset, out_dir: str, *,
     bar = tqdm(total=train_cfg.num_steps, initial=start, disable=not progress or not parallel.is_primary(),
                desc="train", unit="step",
                dynamic_ncols=True)
-    t_last, n_last = time.perf_counter(), start
+    t_last, n_last, c_last = time.perf_counter(), start, time.process_time()
     stop: dict = {"signum": None}
 
     def on_signal(signum, frame):
@@ -280,7 +301,7 @@ def fit(cfg: PolicyConfig, train_cfg: TrainConfig, dataset, out_dir: str, *,
         handlers = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
 
     def flush(done: int):
-        nonlocal pending, t_last, n_last
+        nonlocal pending, t_last, n_last, c_last
         host = parallel.to_host(pending)
         pending = []
         bad = [m for m in host if not m["finite"]]
@@ -290,12 +311,14 @@ def fit(cfg: PolicyConfig, train_cfg: TrainConfig, dataset, out_dir: str, *,
                 f"{bad[0]['grad_norm']}); the update was skipped and the last checkpoint is intact. "
                 f"Try a lower train.lr, train.grad_clip, or check the data for outliers")
         losses.extend(float(m["loss"]) for m in host)
-        now = time.perf_counter()
+        now, cpu = time.perf_counter(), time.process_time()
         sps = (done - n_last) / max(now - t_last, 1e-9)
-        t_last, n_last = now, done
+        # process CPU seconds per step (all its threads): the cost, whatever else shared the cores
+        cpu_per_step = (cpu - c_last) / max(done - n_last, 1)
+        t_last, n_last, c_last = now, done, cpu
         row = {"loss": float(np.mean([m["loss"] for m in host])),
                "grad_norm": float(np.mean([m["grad_norm"] for m in host])), "lr": float(host[-1]["lr"]),
-               "steps_per_s": sps}
+               "steps_per_s": sps, "cpu_s_per_step": cpu_per_step}
         logger.log(done, "train", row)
         bar.set_postfix(loss=f"{row['loss']:.4f}", lr=f"{row['lr']:.1e}", sps=f"{sps:.1f}")
         bar.update(done - bar.n)

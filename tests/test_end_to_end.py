@@ -24,6 +24,7 @@ def test_train_calibrate_evaluate_tiny(tmp_path):
         summary = main(args)
 
     assert summary["steps"] == 12
+    assert 0.0 < summary["cpu_time_s"] and 0.0 < summary["wall_time_s"]  # process CPU time: what the run cost
     assert 0.0 <= summary["eval"]["success_rate"] <= 1.0
     th = summary["thresholds"]
     assert len(th) == 4 and th[0] == -math.inf and th[-1] == math.inf and th[1] < th[2]

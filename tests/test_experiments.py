@@ -495,8 +495,10 @@ def test_campaign_records_an_evaluation_and_rebuilds_from_it(tiny, tmp_path):
     record = _load(path)
     assert record["task"] == TASK and record["seed"] == 0 and record["policy"]["chunk"]["strides"] == [1, 2, 3]
     assert record["calibration"]["thresholds"] == _load(os.path.join(run, "calibration.json"))["thresholds"]
-    cores = len(os.sched_getaffinity(0))  # the cost accounting: wall time x the cores the process ran on
+    cores = len(os.sched_getaffinity(0))  # wall time x the cores the process ran on: the cost's upper bound
     assert record["training"]["cpu_cores"] == evaluation["cpu_cores"] == cores
+    # the cost itself: the process CPU time of the training (all its threads) and of the evaluation
+    assert 0 < record["training"]["cpu_time_s"] and 0 < evaluation["eval_cpu_s"]
     # which rollout made it (the Evaluator's default, the compacted one): the cost model plans with its rate
     assert evaluation["rollout"] == "compacted" and evaluation_rollout(evaluation) == "compacted"
     # the demos' size travels with the record, so the main table's "Demo steps" rebuilds without the buffer
@@ -703,8 +705,10 @@ def test_campaign_shards_split_runs_and_the_plan_estimates_from_records(tmp_path
     model = CostModel(str(tmp_path / "records"), str(tmp_path / "runs"))
     # what was spent: each record's training (wall × its cores, 2 when unstated) and evaluations once
     assert model.spent("smoke") == {"train_s": 100.0 * 1 + 5000.0 * 2, "runs": 2, "eval_s": 2 * 5.0 * 2,
-                                    "evaluations": 2}
-    assert model.spent("cpu") == {"train_s": 0.0, "runs": 0, "eval_s": 0.0, "evaluations": 0}
+                                    "evaluations": 2, "measured_runs": 0, "measured_evaluations": 0,
+                                    "wall_core_s": 100.0 * 1 + 5000.0 * 2 + 2 * 5.0 * 2}
+    assert model.spent("cpu") == {"train_s": 0.0, "runs": 0, "eval_s": 0.0, "evaluations": 0, "measured_runs": 0,
+                                  "measured_evaluations": 0, "wall_core_s": 0.0}
     todo = [Job("press_button", dp, 0), Job("press_button", dp, 1), Job("press_button", te, 1),
             Job("press_button", Column("w/o Hier.", changes=DP), 1), Job("stack_cubes", hip, 0),
             Job("stack_cubes", dp3, 0), Job("stack_cubes", dp, 0, (("train.num_steps", 40),))]
@@ -767,6 +771,36 @@ def test_cost_model_plans_evaluations_at_the_compacted_rollout_rate(tmp_path):
     assert model.eval_seconds("press_button", "chunk") == 30.0 * 2
     # a Meta-World task's evaluations are read under its folder name (metaworld_basketball)
     assert model.eval_seconds("metaworld_basketball", "chunk") == 100.0 * 2
+
+
+def test_cost_counts_measured_cpu_time_before_wall_time(tmp_path):
+    """A record that measured its process CPU time counts that; an older one counts wall time × its cores (2 when
+    unstated): in what was spent, in the estimates (measured ones preferred) and in a table's Cost line."""
+    def write(variant, training, evaluation):
+        path = tmp_path / "records" / "cpu" / "press_button" / "state" / variant / "seed0.json"
+        path.parent.mkdir(parents=True)
+        path.write_text(json.dumps({"training": training, "policy": {"chunk": {"strides": [1]}}, "evaluations": {
+            "0": {"settings": {"execution": "chunk"}, "rollout": "compacted", **evaluation}}}))
+
+    write("dp", {"steps": 100, "wall_time_s": 300.0, "cpu_cores": 1, "cpu_time_s": 200.0},
+          {"eval_s": 60.0, "cpu_cores": 1, "eval_cpu_s": 40.0})
+    write("dp_t8000", {"steps": 100, "wall_time_s": 300.0, "cpu_cores": 1}, {"eval_s": 60.0, "cpu_cores": 1})
+    model = CostModel(str(tmp_path / "records"), str(tmp_path / "runs"))
+    assert model.spent("cpu") == {"train_s": 200.0 + 300.0, "runs": 2, "eval_s": 40.0 + 60.0, "evaluations": 2,
+                                  "measured_runs": 1, "measured_evaluations": 1,
+                                  "wall_core_s": 300.0 + 300.0 + 60.0 + 60.0}
+    assert model.eval_seconds("press_button", "chunk", 1) == 40.0  # the measured one
+    rows = [{"run": "a", "training_s": 300.0, "training_cores": 1, "training_cpu_s": 200.0, "eval_s": 60.0,
+             "cpu_cores": 1, "eval_cpu_s": 40.0},
+            {"run": "a", "training_s": 300.0, "training_cores": 1, "training_cpu_s": 200.0, "eval_s": 30.0,
+             "cpu_cores": 1, "eval_cpu_s": 20.0}]
+    assert report.cost_note(rows) == ("Cost: 0.1 CPU-hours on this 2-core machine kind (0.1 h training 1 runs, "
+                                      "0.0 h evaluating), from the records (measured process CPU time).")
+    rows.append({"run": "b", "training_s": 3600.0, "eval_s": 1800.0})  # an older record: wall × 2 cores
+    assert report.cost_note(rows) == (
+        "Cost: 3.1 CPU-hours on this 2-core machine kind (2.1 h training 2 runs, 1.0 h evaluating), from the "
+        "records (process CPU time of 1 of 2 runs and 2 of 3 evaluations, wall time × the cores its process ran "
+        "on for the rest: an upper bound, other jobs on those cores count too).")
 
 
 def test_cost_model_plans_a_hipolicy_evaluation_from_hipolicy_evaluations(tmp_path):

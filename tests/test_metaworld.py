@@ -8,6 +8,7 @@ chooses another); without it the tests that run the bridge are skipped.
 import dataclasses
 import json
 import os
+import resource
 import subprocess
 import sys
 
@@ -269,7 +270,12 @@ def test_absolute_target_suite_end_to_end(demos, tmp_path):
                     train=TrainConfig(batch_size=16, num_steps=6, warmup_steps=2, log_every=6, ckpt_every=6),
                     inference=InferenceConfig(num_samples=4, num_steps=2, calib_windows=8), **ok)
     assert main(cfg)["task"] == "metaworld-target:assembly"
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
     rec = evaluate_run(cfg.out_dir(), episodes=2, first_seed=700, max_steps=MAX_STEPS, envs=2, log=lambda m: None)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    # its CPU time counts the bridge (a child process) besides this process's serving threads
+    bridge_s = after.ru_utime + after.ru_stime - children.ru_utime - children.ru_stime
+    assert 0 < bridge_s <= rec["cpu_s"]
     assert rec["action_space"] == "target" and rec["policy"]["task"] == "metaworld-target:assembly"
     assert rec["seeds"] == [700, 701] and all(1 <= ep["steps"] <= MAX_STEPS for ep in rec["per_episode"])
 
@@ -549,11 +555,14 @@ def test_the_plan_states_what_is_left_and_what_was_spent(tmp_path):
         ("metaworld:basketball", "DP+HiPolicy", 0)]
     costs = [{"job": j, "done": i == 0, "trains": i > 1, "seconds": 0.0 if i == 0 else None if i == 5 else 1800.0}
              for i, j in enumerate(jobs)]
-    spent = {"train_s": 3600.0, "runs": 1, "eval_s": 1800.0, "evaluations": 1}
+    spent = {"train_s": 3600.0, "runs": 1, "eval_s": 1800.0, "evaluations": 2, "measured_runs": 1,
+             "measured_evaluations": 1, "wall_core_s": 9000.0}
     text = open(write_plan(args, costs, spent)).read()
     assert ("5 of 6 evaluations pending, 4 runs to train; estimated 2.0 CPU-hours for the 4 with a measured rate "
             "(1 not yet measured).") in text
-    assert "Spent so far: 1.5 CPU-hours in the `metaworld` records (runs trained: 1, evaluations: 1" in text
-    assert "spent + left: 3.5 CPU-hours" in text
+    assert ("Spent so far: 1.5 CPU-hours in the `metaworld` records (runs trained: 1, evaluations: 2; the pilot and "
+            "every arm included) (process CPU time of 1 of 1 runs and 1 of 2 evaluations, wall time × the cores its "
+            "process ran on for the rest") in text
+    assert "spent + left: 3.5 CPU-hours. Counted as wall time × cores, as the protocol's budget counts them: 2.5 spent." in text
     assert "| metaworld:basketball | DP+HiPolicy | 2 | yes | – |" in text
     assert "| metaworld:basketball | DP | 0 |" not in text  # recorded: not pending

@@ -14,7 +14,7 @@ from hipolicy_jax.config import (ChunkConfig, DiffusionConfig, InferenceConfig, 
 from hipolicy_jax.data.dataset import SequenceDataset
 from hipolicy_jax.data.replay_buffer import ReplayBuffer
 from hipolicy_jax.sampling import make_sampler
-from hipolicy_jax.trainer import fit, logged_train_seconds
+from hipolicy_jax.trainer import fit, logged_train_cpu_seconds, logged_train_seconds
 from hipolicy_jax.training import make_optimizer, make_train_step, init_train_state
 from hipolicy_jax.models.policy_net import PolicyNet, init_policy_params
 
@@ -126,6 +126,10 @@ def test_resume_reproduces_uninterrupted_losses(dataset, tmp_path):
     first = [r for r in rows if r["kind"] == "train"][:2]  # steps 4, 8 of the first session
     expected = 4 / first[0]["steps_per_s"] + 4 / first[1]["steps_per_s"]
     assert logged_train_seconds(str(tmp_path / "resumed"), 8) == pytest.approx(expected)
+    # and its process CPU time, the same way: every train row holds the CPU seconds per step since the last one
+    assert all(r["cpu_s_per_step"] > 0 for r in rows if r["kind"] == "train")
+    cpu = 4 * first[0]["cpu_s_per_step"] + 4 * first[1]["cpu_s_per_step"]
+    assert logged_train_cpu_seconds(str(tmp_path / "resumed"), 8) == pytest.approx(cpu)
 
 
 def test_logged_train_seconds_counts_each_step_once(tmp_path):
@@ -140,6 +144,20 @@ def test_logged_train_seconds_counts_each_step_once(tmp_path):
     assert logged_train_seconds(str(tmp_path), 150) == pytest.approx(10.0 + 5.0 + 5.0)
     assert logged_train_seconds(str(tmp_path), 10_000) == pytest.approx(20.0 + 25.0)
     assert logged_train_seconds(str(tmp_path / "none"), 100) == 0.0
+
+
+def test_logged_train_cpu_seconds_counts_each_step_once(tmp_path):
+    """Steps since the previous train row × cpu_s_per_step; a re-logged step counts its latest row; a row from
+    before the CPU time was logged makes the total unknown (None); no file: 0."""
+    rows = [(50, 0.2), (100, 0.1), (150, 0.4), (150, 0.2), (200, None)]
+    with open(tmp_path / "metrics.jsonl", "w") as f:
+        for step, cpu in rows:
+            row = {"step": step, "kind": "train", "loss": 1.0, "steps_per_s": 5.0}
+            f.write(json.dumps({**row, **({} if cpu is None else {"cpu_s_per_step": cpu})}) + "\n")
+    assert logged_train_cpu_seconds(str(tmp_path), 100) == pytest.approx(50 * 0.2 + 50 * 0.1)
+    assert logged_train_cpu_seconds(str(tmp_path), 150) == pytest.approx(50 * 0.2 + 50 * 0.1 + 50 * 0.2)
+    assert logged_train_cpu_seconds(str(tmp_path), 10_000) is None
+    assert logged_train_cpu_seconds(str(tmp_path / "none"), 100) == 0.0
 
 
 @pytest.mark.slow

@@ -30,13 +30,13 @@ from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.evaluation import calibration
 from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
 from hipolicy_jax.campaigns.budgets import BUDGETS, run_config
-from hipolicy_jax.campaigns.report import changes_text
+from hipolicy_jax.campaigns.report import changes_text, cpu_s
 from hipolicy_jax.runs.calibrate import run_entropies
 from hipolicy_jax.runs.external import external_summary
 from hipolicy_jax.runs import records as rec_lib
 from hipolicy_jax.runs.lock import CAMPAIGN_LOCK_FILE, RunLock, RunLockedError
 from hipolicy_jax.runs.store import Run, eval_key, make_evaluator, read_json, write_json
-from hipolicy_jax.runs.train import RunConfig, cpu_cores, ensure_trained, finished, prepare_out_dir
+from hipolicy_jax.runs.train import RunConfig, cpu_cores, cpu_seconds, ensure_trained, finished, prepare_out_dir
 
 RECORD_VERSION = rec_lib.RECORD_VERSION
 # External tasks' initial states (``envs.external``): seed k's main episodes from EXTERNAL_EVAL_SEED + 1000 k + i,
@@ -101,7 +101,8 @@ def run_summary(run: Run) -> dict:
     return {"task": run.task, "seed": run.seed, "checkpoint_step": run.policy.step, "policy": meta["policy"],
             "train": meta["train"], "data": os.path.relpath(meta.get("data", "")), "val_ratio": meta.get("val_ratio"),
             "param_count": meta.get("param_count"), "demos": summary.get("demos"),
-            "training": {k: summary.get(k) for k in ("steps", "final_loss", "wall_time_s", "cpu_cores")},
+            "training": {k: summary.get(k) for k in ("steps", "final_loss", "wall_time_s", "cpu_time_s",
+                                                     "cpu_cores")},
             "calibration": {k: calib.get(k) for k in ("thresholds", "percentiles", "num_windows", "inference")}}
 
 
@@ -193,7 +194,7 @@ class Campaign:
                     evaluation = {**record["evaluations"][same], "settings": json.loads(key),
                                   "same_as": json.loads(same), "eval_s": 0.0}
                 else:
-                    t0 = time.perf_counter()
+                    t0, c0 = time.perf_counter(), cpu_seconds()
                     result = ev.evaluate(run.policy.params, run.policy.normalizer, self.episodes, eval_key(seed),
                                          thresholds, entropy_guided=col.guided)
                     valid = np.asarray(result.valid)
@@ -201,7 +202,8 @@ class Campaign:
                                   "success": [bool(x) for x in np.asarray(result.success)],
                                   "steps": [int(x) for x in np.asarray(result.steps)],
                                   "decisions": [int(x) for x in valid.sum(axis=1)], "eval_s": time.perf_counter() - t0,
-                                  "cpu_cores": cpu_cores(), "rollout": ev.rollout_kind}
+                                  "eval_cpu_s": cpu_seconds() - c0, "cpu_cores": cpu_cores(),
+                                  "rollout": ev.rollout_kind}
             evaluation["network"] = net
             evaluation = jsonio.loads(jsonio.dumps(evaluation))  # as records hold it (NaN: None), fresh or reread
             record = {"version": RECORD_VERSION, "budget": self.budget, "run_dir": os.path.relpath(run.run_dir),
@@ -247,7 +249,7 @@ class Campaign:
                       "steps": [int(e["steps"]) for e in rec["per_episode"]],
                       "decisions": [int(e["decisions"]) for e in rec["per_episode"]],
                       "first_seed": first, "max_steps": max_steps, "eval_s": rec["wall_s"],
-                      "cpu_cores": cpu_cores(), "timing": rec["seconds"]}
+                      "eval_cpu_s": rec.get("cpu_s"), "cpu_cores": cpu_cores(), "timing": rec["seconds"]}
         b = BUDGETS[self.budget]
         periodic = periodic or (Periodic(b.periodic_episodes, EXTERNAL_PERIODIC_SEED) if b.periodic_episodes
                                 else None)
@@ -264,14 +266,19 @@ class Campaign:
                              "success_rate": r["success_rate"],
                              "success": [bool(e["success"]) for e in r["per_episode"]],
                              "steps": [int(e["steps"]) for e in r["per_episode"]],
-                             "eval_s": r["wall_s"], "cpu_cores": cpu_cores()})
+                             "eval_s": r["wall_s"], "eval_cpu_s": r.get("cpu_s"), "cpu_cores": cpu_cores()})
             evaluation["periodic"] = {"episodes": periodic.episodes, "seed_base": periodic.seed_base,
                                       "note": "other networks of this run (its kept checkpoints, at the final "
                                               "network's thresholds): DP3's metric only", "checkpoints": rows}
             evaluation["dp3_metric"] = dp3_metric([r["success_rate"] for r in rows])
-        # eval_s: everything this evaluation cost (what the cost model plans with); main_eval_s: the final network's
+        # eval_s: everything this evaluation cost (what the cost model plans with); main_eval_s: the final network's;
+        # the same for the process CPU time (None when a part predates its measurement)
+        checkpoints = evaluation.get("periodic", {}).get("checkpoints", [])
         evaluation["main_eval_s"] = evaluation["eval_s"]
-        evaluation["eval_s"] += sum(r["eval_s"] for r in evaluation.get("periodic", {}).get("checkpoints", []))
+        evaluation["eval_s"] += sum(r["eval_s"] for r in checkpoints)
+        evaluation["main_eval_cpu_s"] = evaluation["eval_cpu_s"]
+        parts = [evaluation["eval_cpu_s"], *(r["eval_cpu_s"] for r in checkpoints)]
+        evaluation["eval_cpu_s"] = None if None in parts else sum(parts)
         return evaluation
 
 
@@ -348,9 +355,14 @@ def training_key(policy: dict, batch_size: int) -> str:
     return json.dumps({"policy": policy, "batch_size": batch_size}, sort_keys=True)
 
 
+NOTHING_SPENT = {"train_s": 0.0, "runs": 0, "eval_s": 0.0, "evaluations": 0, "measured_runs": 0,
+                 "measured_evaluations": 0, "wall_core_s": 0.0}
+
+
 class CostModel:
-    """CPU-seconds a campaign's pending evaluation will take (wall time × the cores its process ran on, 2 where a
-    record does not say), from the measured times the records hold: the run's training when it has none yet
+    """CPU-seconds a campaign's pending evaluation will take, from the measured times the records hold (``cpu_s``:
+    the process CPU time where a record measured it, else wall time × the cores its process ran on, 2 where it
+    does not say): the run's training when it has none yet
     (seconds per step of the same network and batch on the same task, else on any task, else of any run of the
     observation type, × the run's steps), plus the evaluation (the same task, execution strategy and stride count,
     else the strategy and stride count on any task, else the task, else any: ``eval_seconds``); 0 for an evaluation another table's column already makes. Medians, each over the first non-empty
@@ -358,8 +370,9 @@ class CostModel:
     evaluations, those made at today's rate — by the compacted rollout (``"rollout"``; an MJX evaluation without it
     was made by the older, slower vmapped one) or externally (a Meta-World evaluation, no MJX rollout) — then those
     that say their cores (a record without them comes from a process that shared its cores with others, so a run
-    slowed by other jobs does not skew them); for training, those that say their cores. None when no record of
-    the observation type exists yet."""
+    slowed by other jobs does not skew them), then those that measured their CPU time; for training, those that
+    say their cores, then those that measured their CPU time. None when no record of the observation type exists
+    yet."""
 
     def __init__(self, records: str, runs: str):
         self.records, self.runs = records, runs
@@ -368,22 +381,26 @@ class CostModel:
         # ((task, execution, strides), seconds, (at today's rollout rate, cores stated)); strides: how many the
         # policy has (one draws a single sample a decision, several draw N: a several-fold cost), None unknown
         self._eval: list[tuple[tuple[str, str, int | None], float, tuple[bool, ...]]] = []
-        self._spent: dict[str, dict[str, float]] = {}  # budget → CPU-seconds and counts of what the records hold
+        # budget → CPU-seconds and counts of what the records hold (``measured_*``: with their CPU time measured)
+        self._spent: dict[str, dict[str, float]] = {}
         for path in glob.glob(os.path.join(records, "**", "*.json"), recursive=True):
             rec = read_json(path)
             parts = os.path.relpath(path, records).split(os.sep)
             if len(parts) < 5 or "training" not in rec:
                 continue
             task, obs = parts[-4], parts[-3]
-            spent = self._spent.setdefault(parts[0], {"train_s": 0.0, "runs": 0, "eval_s": 0.0, "evaluations": 0})
+            spent = self._spent.setdefault(parts[0], dict(NOTHING_SPENT))
             key = training_key(rec.get("policy"), (rec.get("train") or {}).get("batch_size"))
             steps, wall = rec["training"].get("steps"), rec["training"].get("wall_time_s")
-            cores = rec["training"].get("cpu_cores")
+            cores, cpu = rec["training"].get("cpu_cores"), rec["training"].get("cpu_time_s")
             if wall:
-                spent["train_s"] += wall * (cores or 2)
+                spent["train_s"] += cpu_s(wall, cores, cpu)
+                spent["wall_core_s"] += cpu_s(wall, cores, None)
                 spent["runs"] += 1
+                spent["measured_runs"] += cpu is not None
             if steps and wall:
-                self._train.append(((task, obs, key), wall * (cores or 2) / steps, (cores is not None,)))
+                self._train.append(((task, obs, key), cpu_s(wall, cores, cpu) / steps,
+                                    (cores is not None, cpu is not None)))
             external = envs.external.is_external(rec.get("task") or "")
             strides = ((rec.get("policy") or {}).get("chunk") or {}).get("strides")
             kind = len(strides) if strides else None
@@ -391,19 +408,22 @@ class CostModel:
                            *(ev for old in rec.get("superseded", []) for ev in old["evaluations"].values())]
             for ev in evaluations:
                 if ev.get("eval_s"):
-                    spent["eval_s"] += ev["eval_s"] * (ev.get("cpu_cores") or 2)
+                    seconds = cpu_s(ev["eval_s"], ev.get("cpu_cores"), ev.get("eval_cpu_s"))
+                    spent["eval_s"] += seconds
+                    spent["wall_core_s"] += cpu_s(ev["eval_s"], ev.get("cpu_cores"), None)
                     spent["evaluations"] += 1
+                    spent["measured_evaluations"] += ev.get("eval_cpu_s") is not None
                     current = external or evaluation_rollout(ev) == "compacted"
-                    self._eval.append(((task, ev["settings"]["execution"], kind),
-                                       ev["eval_s"] * (ev.get("cpu_cores") or 2),
-                                       (current, ev.get("cpu_cores") is not None)))
+                    self._eval.append(((task, ev["settings"]["execution"], kind), seconds,
+                                       (current, ev.get("cpu_cores") is not None, ev.get("eval_cpu_s") is not None)))
 
     def spent(self, budget: str) -> dict[str, float]:
         """What the records of ``budget`` cost, each run and each evaluation counted once (however many tables use
         it; the pilot's runs included): CPU-seconds of training (``train_s``) over ``runs`` runs and of evaluation
         (``eval_s``) over ``evaluations`` evaluations — an evaluation another column reuses took no time and is
-        not counted."""
-        return dict(self._spent.get(budget, {"train_s": 0.0, "runs": 0, "eval_s": 0.0, "evaluations": 0}))
+        not counted; ``measured_runs`` / ``measured_evaluations`` of them measured their process CPU time (the
+        others count wall time × cores); ``wall_core_s``: all of it as wall time × cores (the upper bound)."""
+        return dict(self._spent.get(budget, NOTHING_SPENT))
 
     @staticmethod
     def _median(rows, *matches) -> float | None:
@@ -605,6 +625,6 @@ def choose_low_regime(tried: list[tuple[dict, float]], low: float = 0.15, high: 
     return min(tried, key=lambda cs: abs(cs[1] - (low + high) / 2))[0], False
 
 
-__all__ = ["EXTERNAL_EVAL_SEED", "EXTERNAL_PERIODIC_SEED", "Periodic", "checkpoint_steps", "dp3_metric",
+__all__ = ["EXTERNAL_EVAL_SEED", "EXTERNAL_PERIODIC_SEED", "NOTHING_SPENT", "Periodic", "checkpoint_steps", "dp3_metric",
            "external_summary", "README_BEGIN", "README_END", "Campaign", "Column", "choose_low_regime", "evaluation_key",
            "pilot_candidates", "readme_section", "record_path", "run_summary", "update_readme", "work_off"]

@@ -199,17 +199,35 @@ def leave_one_out(records: list[dict], seeds, tasks, new: str, base: str, scale:
     return "; ".join(parts) or "–"
 
 
+def cpu_s(wall_s: float, cores: int | None, cpu_time_s: float | None) -> float:
+    """What a run or evaluation cost in CPU-seconds: its measured process CPU time, else (records made before it
+    was measured) wall time × the cores its process ran on (2 where the record does not say), an upper bound."""
+    return cpu_time_s if cpu_time_s is not None else wall_s * (cores or 2)
+
+
+def measured_text(runs: int, measured_runs: int, evaluations: int, measured_evaluations: int) -> str:
+    """How CPU-seconds were counted: '(process CPU time of 3 of 10 runs and 5 of 12 evaluations, wall time × the
+    cores its process ran on for the rest: an upper bound, other jobs on those cores count too)'."""
+    if runs == measured_runs and evaluations == measured_evaluations:
+        return "(measured process CPU time)"
+    return (f"(process CPU time of {measured_runs} of {runs} runs and {measured_evaluations} of {evaluations} "
+            f"evaluations, wall time × the cores its process ran on for the rest: an upper bound, other jobs on "
+            f"those cores count too)")
+
+
 def cost_note(records: list[dict]) -> str:
-    """What the table's runs and evaluations cost (from the records: training wall time of each distinct run,
-    evaluation time of each evaluation, each × the cores its process ran on: 2 unless the record says otherwise),
-    in CPU-hours of this 2-core machine kind."""
-    train = {r["run"]: ((r.get("training_s") or 0.0), r.get("training_cores") or 2) for r in records}
-    train_s = sum(s for s, _ in train.values())
-    eval_s = sum(r.get("eval_s") or 0.0 for r in records)
-    cpu_h = (sum(s * c for s, c in train.values()) + sum((r.get("eval_s") or 0.0) * (r.get("cpu_cores") or 2)
-                                                          for r in records)) / 3600
-    return (f"Cost: {cpu_h:.1f} CPU-hours on this 2-core machine kind (wall time × the cores each process ran on; "
-            f"{train_s / 3600:.1f} h training {len(train)} runs, {eval_s / 3600:.1f} h evaluating), from the records.")
+    """What the table's runs and evaluations cost, in CPU-hours of this 2-core machine kind, from the records: each
+    distinct run's training and each evaluation, counted as ``campaign.cpu_s`` counts them (the measured process
+    CPU time, else wall time × the cores its process ran on: 2 unless the record says)."""
+    train = {r["run"]: cpu_s(r.get("training_s") or 0.0, r.get("training_cores"), r.get("training_cpu_s"))
+             for r in records}
+    measured_runs = len({r["run"] for r in records if r.get("training_cpu_s") is not None})
+    evals = [cpu_s(r.get("eval_s") or 0.0, r.get("cpu_cores"), r.get("eval_cpu_s")) for r in records]
+    measured = sum(r.get("eval_cpu_s") is not None for r in records)
+    train_h, eval_h = sum(train.values()) / 3600, sum(evals) / 3600
+    return (f"Cost: {train_h + eval_h:.1f} CPU-hours on this 2-core machine kind ({train_h:.1f} h training "
+            f"{len(train)} runs, {eval_h:.1f} h evaluating), from the records "
+            f"{measured_text(len(train), measured_runs, len(evals), measured)}.")
 
 
 def bar_figure(path: str, groups: list[str], panels: list[tuple[str, dict[str, list[dict]]]], title: str,

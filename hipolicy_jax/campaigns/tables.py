@@ -27,7 +27,8 @@ from hipolicy_jax.campaigns.campaign import (README_BEGIN, README_END, Campaign,
                                         shard, update_readme)
 from hipolicy_jax.runs.lock import RunLockedError
 from hipolicy_jax.campaigns.report import (RATE_BOUNDS, bar_figure, changes_text, ci, cost_note, interval_text, leave_one_out,
-                                      markdown_table, outcomes, p_text, paired, paired_bootstrap, paired_cell,
+                                      markdown_table, measured_text, outcomes, p_text, paired, paired_bootstrap,
+                                      paired_cell,
                                       relative_gain,
                                       stride_cell, task_mean, verdict_text)
 from hipolicy_jax.runs.store import read_json, write_json
@@ -202,7 +203,8 @@ def table_record(camp: Campaign, task: str, col: Column, seed: int, run_changes:
     run = camp.run_config(task, col, seed, run_changes).out_dir()
     training = camp.record(task, col, seed, run_changes).get("training") or {}
     return {"task": task, "seed": seed, "column": col.label, "regime": run_changes, "run": os.path.relpath(run),
-            "training_s": training.get("wall_time_s"), "training_cores": training.get("cpu_cores"), **{k: v for k, v in evaluation.items() if k != "settings"}}
+            "training_s": training.get("wall_time_s"), "training_cores": training.get("cpu_cores"),
+            "training_cpu_s": training.get("cpu_time_s"), **{k: v for k, v in evaluation.items() if k != "settings"}}
 
 
 def table_run_changes(args: PaperArgs, task: str) -> list[dict]:
@@ -951,10 +953,12 @@ def campaign_table(args: "CampaignArgs") -> str:
         progress = (f"Interim: {len(jobs) - len(left)} of {len(jobs)} evaluations recorded; what is left and its "
                     f"estimated cost: [campaign_plan.md]({{}}).")
     spent = CostModel(args.records, args.runs).spent(args.budget)
-    cost = (f"The campaign{' so far' if left else ''} cost {(spent['train_s'] + spent['eval_s']) / 3600:.1f} CPU-hours of this 2-core "
-            f"machine kind, each run and evaluation counted once (the pilot's included): "
+    cost = (f"The campaign{' so far' if left else ''} cost {(spent['train_s'] + spent['eval_s']) / 3600:.1f} "
+            f"CPU-hours of this 2-core machine kind, each run and evaluation counted once (the pilot's included): "
             f"{spent['train_s'] / 3600:.1f} h training {spent['runs']} runs, {spent['eval_s'] / 3600:.1f} h making "
-            f"{spent['evaluations']} evaluations; a table's Cost line counts the runs it shares with others too.")
+            f"{spent['evaluations']} evaluations "
+            f"{measured_text(spent['runs'], spent['measured_runs'], spent['evaluations'], spent['measured_evaluations'])}"
+            f"; a table's Cost line counts the runs it shares with others too.")
     lines = [f"# Campaign ({args.budget})", "", f"Command: `{command_line(args)}`", "", cost, "",
              f"{len(jobs)} evaluations; tables:", ""] + [f"- [{os.path.basename(p)}]({os.path.basename(p)})"
                                                            for p in paths]

@@ -31,6 +31,7 @@ import numpy as np
 from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.envs import external
 from hipolicy_jax.runs.records import params_fingerprint
+from hipolicy_jax.runs.train import cpu_seconds
 
 
 def _run(command: str, what: str, timeout: float | None = None) -> subprocess.CompletedProcess:
@@ -80,13 +81,14 @@ def evaluate_run(run_dir: str, *, episodes: int, first_seed: int, max_steps: int
     """Serve the run at ``run_dir`` (checkpoint ``step``, default the latest; its stored inference settings unless
     ``inference``) and evaluate it on ``episodes`` episodes of its task from initial-state seeds ``first_seed``, ...
     with its bridge, ``envs`` at a time; → the bridge's record plus ``checkpoint_step``, the network's
-    ``params_sha256`` (``records.params_fingerprint``), ``wall_s`` (serving and episodes) and ``reused`` (True:
-    the record ``keep`` kept from an earlier call with the same network and settings; its ``wall_s`` is that
+    ``params_sha256`` (``records.params_fingerprint``), ``wall_s`` (serving and episodes), ``cpu_s`` (the CPU
+    time of this process, whose threads serve the policy, and of the bridge) and ``reused`` (True: the record
+    ``keep`` kept from an earlier call with the same network and settings; its ``wall_s`` and ``cpu_s`` are that
     call's)."""
     from hipolicy_jax.runs.serve import run_backend
     from hipolicy_jax.deploy.server import PolicyServer, ServerConfig
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), cpu_seconds()
     backend = run_backend(run_dir, inference, step)
     name = backend.metadata["task"]
     external.check_name(name)
@@ -120,6 +122,7 @@ def evaluate_run(run_dir: str, *, episodes: int, first_seed: int, max_steps: int
     record["checkpoint_step"] = backend.metadata.get("checkpoint_step")
     record["params_sha256"] = fingerprint
     record["wall_s"] = time.perf_counter() - t0
+    record["cpu_s"] = cpu_seconds() - c0
     if path is not None:
         os.makedirs(os.path.dirname(path), exist_ok=True)
         with open(path + ".tmp", "w") as f:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
+import resource
 import time
 
 import jax
@@ -36,7 +37,7 @@ from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
 from hipolicy_jax.models.policy_net import PolicyNet
 from hipolicy_jax.runs.lock import RunLock
 from hipolicy_jax.runs.store import Run, eval_key, load_run, read_json, write_inference, write_json
-from hipolicy_jax.trainer import fit, logged_train_seconds, run_keys
+from hipolicy_jax.trainer import fit, logged_train_cpu_seconds, logged_train_seconds, run_keys
 
 # CPU-sized defaults: the paper's windowing (strides 1/2/3, L_h 3, L_c 8) with a small U-Net.
 CPU_POLICY = PolicyConfig(chunk=ChunkConfig(), model=ModelConfig(size="cpu"))
@@ -176,8 +177,21 @@ def dry_run(cfg: RunConfig) -> dict:
 
 
 def cpu_cores() -> int:
-    """The CPU cores this process may run on (its affinity: ``taskset -c 0`` → 1): CPU-hours = wall time × this."""
+    """The CPU cores this process may run on (its affinity: ``taskset -c 0`` → 1): wall time × this bounds the
+    CPU-seconds it used from above (other jobs on those cores count too)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def cpu_seconds() -> float:
+    """CPU seconds this process used so far (every thread, user + system) plus those of its finished child
+    processes (an external task's bridge): the difference over a span is what the span cost, whatever else ran
+    on the same cores."""
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime
+
+
+def _plus(a: float | None, b: float | None) -> float | None:
+    return None if a is None or b is None else a + b
 
 
 def prepare_out_dir(out: str) -> str:
@@ -208,7 +222,7 @@ def train(cfg: RunConfig) -> dict:
 
 
 def _train(cfg: RunConfig, out: str) -> dict:
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), cpu_seconds()
     primary = parallel.is_primary()
     if primary and not cfg.external:
         load_or_collect(cfg.task, cfg.policy.encoder, cfg.episodes, cfg.data_path(), seed=cfg.demo_seed,
@@ -282,6 +296,8 @@ def _train(cfg: RunConfig, out: str) -> dict:
                "final_loss": float(np.mean(result.losses[-50:])) if result.losses else None,
                # this session's wall time + the logged step time of the sessions before a resume
                "wall_time_s": time.perf_counter() - t0 + logged_train_seconds(out, result.start_step),
+               # process CPU time, the same span (None when an earlier session predates its measurement)
+               "cpu_time_s": _plus(cpu_seconds() - c0, logged_train_cpu_seconds(out, result.start_step)),
                "cpu_cores": cpu_cores(), "out": os.path.abspath(out),
                "demos": {"episodes": buffer.num_episodes, "frames": buffer.num_frames}}
     write_json(os.path.join(out, "summary.json"), summary)
