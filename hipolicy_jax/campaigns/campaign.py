@@ -365,7 +365,8 @@ class CostModel:
     does not say): the run's training when it has none yet
     (seconds per step of the same network and batch on the same task, else on any task, else of any run of the
     observation type, × the run's steps), plus the evaluation (the same task, execution strategy and stride count,
-    else the strategy and stride count on any task, else the task, else any: ``eval_seconds``); 0 for an evaluation another table's column already makes. Medians, each over the first non-empty
+    else the strategy and stride count on any task, else the task, else any: ``eval_seconds``); 0 for an
+    evaluation another table's column already makes. Medians, each over the first non-empty
     selection narrowed by preferences in turn (each keeps only the rows that have it, when any do): for
     evaluations, those made at today's rate — by the compacted rollout (``"rollout"``; an MJX evaluation without it
     was made by the older, slower vmapped one) or externally (a Meta-World evaluation, no MJX rollout) — then those
@@ -469,7 +470,8 @@ class CostModel:
             evaluation = (cfg.out_dir(), camp._key(job.col, job.seed)[1])  # another table's column may share it
             seconds = 0.0
             if not done and evaluation not in evaluated:
-                parts = [self.eval_seconds(self._task_dir(cfg)[0], job.col.execution, len(cfg.policy.chunk.strides))]
+                strides = len(cfg.policy.chunk.strides)
+                parts = [self.eval_seconds(self._task_dir(cfg)[0], job.col.execution, strides)]
                 parts += [self.train_seconds(cfg)] if needs_train else []
                 seconds = None if None in parts else sum(parts)
             evaluated.add(evaluation)

@@ -24,7 +24,7 @@ from tqdm.auto import tqdm
 from hipolicy_jax.campaigns.budgets import (BUDGETS, DP, METAWORLD_PILOT, METAWORLD_PILOT_STEPS,
                                             METAWORLD_POINTCLOUD_TASKS, METAWORLD_STATE_TASKS, METAWORLD_STEPS)
 from hipolicy_jax.campaigns.campaign import EXTERNAL_EVAL_SEED, Column, CostModel, Job, Periodic, work_off
-from hipolicy_jax.campaigns.report import markdown_table, measured_text
+from hipolicy_jax.campaigns.report import markdown_table, spent_measured_text
 from hipolicy_jax.campaigns.tables import (PAIRED_NOTE, PaperArgs, table_record, campaign, demo_steps,
                                            eval_episodes, grouped_rows, success_by_task_figure, write_results)
 from hipolicy_jax.runs.store import read_json, write_json
@@ -263,7 +263,8 @@ def main_jobs(args: MainArgs) -> list[Job]:
 
 def write_plan(args: MainArgs, costs: list[dict], spent: dict[str, float]) -> str:
     """``<results>/plan.md``: the pending jobs with their estimated CPU-seconds and what the records spent so far.
-    ``costs``: ``CostModel.estimate`` rows; ``spent``: ``CostModel.spent`` of the budget's records. Returns the path."""
+    ``costs``: ``CostModel.estimate`` rows; ``spent``: ``CostModel.spent`` of the budget's records. Returns the
+    path."""
     pending = [c for c in costs if not c["done"]]
     known = [c["seconds"] for c in pending if c["seconds"] is not None]
     spent_h = (spent["train_s"] + spent["eval_s"]) / 3600
@@ -273,8 +274,7 @@ def write_plan(args: MainArgs, costs: list[dict], spent: dict[str, float]) -> st
              + (f" ({len(pending) - len(known)} not yet measured)" if len(known) < len(pending) else "") + ".", "",
              f"Spent so far: {spent_h:.1f} CPU-hours in the `{args.budget}` records (runs trained: {spent['runs']}, "
              f"evaluations: {spent['evaluations']}; the pilot and every arm included) "
-             f"{measured_text(spent['runs'], spent['measured_runs'], spent['evaluations'], spent['measured_evaluations'])}"
-             f"; spent + left: {spent_h + sum(known) / 3600:.1f} CPU-hours. Counted as wall time × cores, as the "
+             f"{spent_measured_text(spent)}; spent + left: {spent_h + sum(known) / 3600:.1f} CPU-hours. Counted as wall time × cores, as the "
              f"protocol's budget counts them: {spent['wall_core_s'] / 3600:.1f} spent.", "",
              markdown_table(["Task", "Column", "Seed", "Trains", "Estimated CPU-s"],
                             [[c["job"].task, c["job"].col.label, str(c["job"].seed), "yes" if c["trains"] else "",

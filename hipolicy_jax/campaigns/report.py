@@ -215,9 +215,14 @@ def measured_text(runs: int, measured_runs: int, evaluations: int, measured_eval
             f"those cores count too)")
 
 
+def spent_measured_text(spent: dict) -> str:
+    """``measured_text`` of ``CostModel.spent``'s counts."""
+    return measured_text(spent["runs"], spent["measured_runs"], spent["evaluations"], spent["measured_evaluations"])
+
+
 def cost_note(records: list[dict]) -> str:
     """What the table's runs and evaluations cost, in CPU-hours of this 2-core machine kind, from the records: each
-    distinct run's training and each evaluation, counted as ``campaign.cpu_s`` counts them (the measured process
+    distinct run's training and each evaluation, counted as ``cpu_s`` counts them (the measured process
     CPU time, else wall time × the cores its process ran on: 2 unless the record says)."""
     train = {r["run"]: cpu_s(r.get("training_s") or 0.0, r.get("training_cores"), r.get("training_cpu_s"))
              for r in records}

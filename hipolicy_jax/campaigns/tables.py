@@ -27,9 +27,8 @@ from hipolicy_jax.campaigns.campaign import (README_BEGIN, README_END, Campaign,
                                         shard, update_readme)
 from hipolicy_jax.runs.lock import RunLockedError
 from hipolicy_jax.campaigns.report import (RATE_BOUNDS, bar_figure, changes_text, ci, cost_note, interval_text, leave_one_out,
-                                      markdown_table, measured_text, outcomes, p_text, paired, paired_bootstrap,
-                                      paired_cell,
-                                      relative_gain,
+                                      markdown_table, outcomes, p_text, paired, paired_bootstrap,
+                                      paired_cell, relative_gain, spent_measured_text,
                                       stride_cell, task_mean, verdict_text)
 from hipolicy_jax.runs.store import read_json, write_json
 from hipolicy_jax.runs.train import RunConfig, cpu_cores
@@ -956,9 +955,7 @@ def campaign_table(args: "CampaignArgs") -> str:
     cost = (f"The campaign{' so far' if left else ''} cost {(spent['train_s'] + spent['eval_s']) / 3600:.1f} "
             f"CPU-hours of this 2-core machine kind, each run and evaluation counted once (the pilot's included): "
             f"{spent['train_s'] / 3600:.1f} h training {spent['runs']} runs, {spent['eval_s'] / 3600:.1f} h making "
-            f"{spent['evaluations']} evaluations "
-            f"{measured_text(spent['runs'], spent['measured_runs'], spent['evaluations'], spent['measured_evaluations'])}"
-            f"; a table's Cost line counts the runs it shares with others too.")
+            f"{spent['evaluations']} evaluations {spent_measured_text(spent)}; a table's Cost line counts the runs it shares with others too.")
     lines = [f"# Campaign ({args.budget})", "", f"Command: `{command_line(args)}`", "", cost, "",
              f"{len(jobs)} evaluations; tables:", ""] + [f"- [{os.path.basename(p)}]({os.path.basename(p)})"
                                                            for p in paths]
