@@ -8,6 +8,7 @@ import math
 import os
 import re
 import shlex
+import shutil
 import subprocess
 from pathlib import Path
 import sys
@@ -669,7 +670,8 @@ def test_campaign_shards_split_runs_and_the_plan_estimates_from_records(tmp_path
     """--shard K N splits the jobs by run (disjoint, complete, balanced, no run in two shards); the cost model
     estimates a pending job from the records' CPU-seconds (wall × cores): training per step of the variant, else of
     the observation type, plus the evaluation of the task and strategy; recorded jobs, evaluations another column
-    shares and unmeasured observation types are told apart; the plan file sums it."""
+    shares and unmeasured observation types are told apart; a run resumed from a checkpoint is estimated for
+    the steps after it; the plan file sums it."""
     args = paper.parse_args(["campaign", "--budget", "smoke", "--runs", str(tmp_path / "runs"), "--records",
                              str(tmp_path / "records"), "--results", str(tmp_path / "results"), "--no-progress"])
     camp = tables.campaign(args)
@@ -722,6 +724,13 @@ def test_campaign_shards_split_runs_and_the_plan_estimates_from_records(tmp_path
         (False, True, 10.0 * steps + 10.0),  # no record of its network: the state runs' per-step time
         (False, True, None),  # no point-cloud record at all: unmeasured
         (False, True, 10.0 * 40 + 10.0)]  # the DP network on another task and regime: its per-step time × 40 steps
+    # a run interrupted at a checkpoint (a preempted job) resumes there: only the steps after it are estimated
+    ckpt = Path(dp_cfg.out_dir()).parent / "seed1" / "checkpoints"
+    (ckpt / str(steps // 2)).mkdir(parents=True)
+    (ckpt / "tmp-orbax").mkdir()  # not a step
+    resumed = model.estimate(camp, todo[1:2])[0]
+    assert (resumed["trains"], resumed["seconds"]) == (True, 10.0 * (steps - steps // 2) + 10.0)
+    shutil.rmtree(ckpt)
     # a campaign estimates once; an unmeasured job is estimated again before it starts, from the records then
     assert CostModel.refresh(str(tmp_path / "records"), str(tmp_path / "runs"), camp, rows[5])["seconds"] is None
     assert CostModel.refresh(str(tmp_path / "records"), str(tmp_path / "runs"), camp, rows[1]) is rows[1]

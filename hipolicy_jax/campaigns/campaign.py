@@ -364,7 +364,7 @@ class CostModel:
     the process CPU time where a record measured it, else wall time × the cores its process ran on, 2 where it
     does not say): the run's training when it has none yet
     (seconds per step of the same network and batch on the same task, else on any task, else of any run of the
-    observation type, × the run's steps), plus the evaluation (the same task, execution strategy and stride count,
+    observation type, × the run's steps after its latest checkpoint), plus the evaluation (the same task, execution strategy and stride count,
     else the strategy and stride count on any task, else the task, else any: ``eval_seconds``); 0 for an
     evaluation another table's column already makes. Medians, each over the first non-empty
     selection narrowed by preferences in turn (each keeps only the rows that have it, when any do): for
@@ -445,10 +445,13 @@ class CostModel:
         return parts[-4], parts[-3]
 
     def train_seconds(self, cfg: RunConfig) -> float | None:
+        """The run's training still to do: the per-step time × the steps after its latest checkpoint (a run
+        interrupted and resumed — a preempted job, a restarted campaign — continues from there)."""
         task, obs = self._task_dir(cfg)
         key = training_key(config_to_dict(cfg.policy), cfg.train.batch_size)
         per_step = self._median(self._train, (task, obs, key), (None, obs, key), (None, obs, None))
-        return None if per_step is None else per_step * cfg.train.num_steps
+        done = max([s for s in checkpoint_steps(cfg.out_dir()) if s <= cfg.train.num_steps], default=0)
+        return None if per_step is None else per_step * (cfg.train.num_steps - done)
 
     def eval_seconds(self, task: str, execution: str, strides: int | None = None) -> float | None:
         """``task``: its folder name (``_task_dir``); ``strides``: how many the policy has (None: any). The same
