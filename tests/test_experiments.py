@@ -458,6 +458,10 @@ def test_table_formatting_helpers():
     assert report.ci(ep, "success_rate", (0,), ["a", "b"], 100.0, column="base") != "–"
     assert report.paired_cell(ep, (0,), ["a"], "new", "base") == "+0.0 (1 seed: no test)"
     assert report.paired_cell(ep, (0,), ["a", "b"], "new", "base") == "–"
+    # findings.md's per-task cell (the budget rows too): one paired seed is a point with no test, two a verdict
+    assert report.finding_text(report.paired(ep, (0,), ["a"], "new", "base")) == "+0.0 (1 seed: no test)"
+    two = [{**r, "seed": s, "success": [s == 1 or r["column"] == "new"] * 10} for r in ep[::2] for s in (0, 1)]
+    assert report.finding_text(report.paired(two, (0, 1), ["a"], "new", "base")).endswith(" ties")
     far = [{"task": "t", "seed": s, "column": "c", "success_rate": 1.0, "success": [True], "steps": [v]}
            for s, v in ((0, 10), (1, 400))]  # steps to success: the t interval (t(1) = 12.7) clipped at 0
     assert report.ci(far, "mean_steps_success", (0, 1), ["t"], column="c").startswith("205.0 [0.0, 2")

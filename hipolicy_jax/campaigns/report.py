@@ -170,6 +170,15 @@ def verdict_text(c: Paired) -> str:
     return stats.verdict(c.diff)
 
 
+def finding_text(c: Paired) -> str:
+    """One task's paired cell of findings.md: 'Δ [lo, hi] wins / ties / loses', or 'Δ (1 seed: no test)' while one
+    seed is paired (no interval, so no verdict)."""
+    verdict = verdict_text(c)
+    if verdict == "–":
+        return f"{interval_text(c.diff, 100.0, signed=True)} ({c.diff.seeds} seed: no test)"
+    return f"{interval_text(c.diff, 100.0, signed=True)} {verdict}"
+
+
 def p_text(p: float) -> str:
     return "–" if not np.isfinite(p) else f"{p:.2g}"
 

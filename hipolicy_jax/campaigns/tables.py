@@ -26,10 +26,10 @@ from hipolicy_jax.campaigns.campaign import (README_BEGIN, README_END, Campaign,
                                             choose_low_regime, parse_until, work_off, pilot_candidates, readme_section, schedule,
                                         shard, update_readme)
 from hipolicy_jax.runs.lock import RunLockedError
-from hipolicy_jax.campaigns.report import (RATE_BOUNDS, bar_figure, changes_text, ci, cost_note, interval_text, leave_one_out,
-                                      markdown_table, outcomes, p_text, paired, paired_bootstrap,
-                                      paired_cell, relative_gain, spent_measured_text,
-                                      stride_cell, task_mean, verdict_text)
+from hipolicy_jax.campaigns.report import (RATE_BOUNDS, bar_figure, changes_text, ci, cost_note, finding_text,
+                                           interval_text, leave_one_out, markdown_table, outcomes, p_text, paired,
+                                           paired_bootstrap, paired_cell, relative_gain, spent_measured_text,
+                                           stride_cell, task_mean, verdict_text)
 from hipolicy_jax.runs.store import read_json, write_json
 from hipolicy_jax.runs.train import RunConfig, cpu_cores
 
@@ -843,8 +843,7 @@ def findings_table(args: "CampaignArgs", tables: list[PaperArgs]) -> str | None:
                 cells = []
                 for task in args.tasks:
                     c = paired(rs, seeds, [task], "DP+HiPolicy", "DP") if task in t.tasks else None
-                    cells.append("–" if c is None else
-                                 f"{interval_text(c.diff, 100.0, signed=True)} {verdict_text(c)}")
+                    cells.append("–" if c is None else finding_text(c))
                 budget_rows.append([f"{n:,} steps", *cells])
             continue
         for name, new, base in FINDINGS:
@@ -857,11 +856,9 @@ def findings_table(args: "CampaignArgs", tables: list[PaperArgs]) -> str | None:
                     cells.append("–")
                     continue
                 verdict = stats.verdict(c.diff)
-                if verdict not in counts:  # one seed so far: a point, no test, no verdict
-                    cells.append(f"{interval_text(c.diff, 100.0, signed=True)} ({c.diff.seeds} seed: no test)")
-                    continue
-                counts[verdict] += 1
-                cells.append(f"{interval_text(c.diff, 100.0, signed=True)} {verdict}")
+                if verdict in counts:  # one seed so far: a point, no test, no verdict
+                    counts[verdict] += 1
+                cells.append(finding_text(c))
             for v in VERDICTS:
                 tally[v] += counts[v]
             avg = paired(records, seeds, list(t.tasks), new, base)
