@@ -503,6 +503,10 @@ def test_metaworld_campaign_end_to_end(tmp_path, monkeypatch):
         "target": {"1": {"success_rate": 1.0}, "2": {"success_rate": 0.35}, "3": {"success_rate": 0.05}}}}}))
     text = open(metaworld(parse_args(["diagnose", *diag, "--from-records"]))).read()
     assert "| 100 / 0 / – | 100 / 35 / 5 |" in text
+    # a network without its stride-1 pass (its checkpoint gone with the machine that trained it) is named
+    state_eval.unlink()
+    text = open(metaworld(parse_args(["diagnose", *diag, "--from-records"]))).read()
+    assert f"No {STRIDE1} pass for: metaworld:assembly seed 0. A pass serves the run's checkpoint" in text
 
 
 def test_demo_coverage_of_displacement_demos(tmp_path):

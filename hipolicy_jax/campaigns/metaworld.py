@@ -402,7 +402,7 @@ def diagnose_table(args: DiagnoseArgs) -> str:
     dp, hip = COLUMNS[0], COLUMNS[1]
     changes = dict(run_changes(args.budget, args.steps))
     os.makedirs(args.results, exist_ok=True)
-    records, coverage = [], {}
+    records, coverage, missing = [], {}, {}
     for task in tqdm(args.tasks, desc="metaworld diagnose", unit="task", disable=not args.progress):
         bare = task.partition(":")[2]
         path = os.path.join(args.results, f"{bare}_coverage.json")
@@ -426,6 +426,7 @@ def diagnose_table(args: DiagnoseArgs) -> str:
                                          out=os.path.join(run_dir, "eval"), log=lambda msg: None)
                 write_json(path, report)
             if not os.path.exists(path):
+                missing.setdefault(task, []).append(seed)
                 continue
             report = read_json(path)
             if report["params_sha256"] != guided["network"]["params_sha256"]:
@@ -486,11 +487,17 @@ def diagnose_table(args: DiagnoseArgs) -> str:
              "guidance on vs off.", PAIRED_NOTE]
     if len(args.tasks) > 1:
         for new, base in pairs:
-            done = [t for t in args.tasks if {r["seed"] for r in records if r["task"] == t and r["column"] == new}
-                    >= set(args.seeds)]
+            done = [t for t in args.tasks if all({r["seed"] for r in records if r["task"] == t and r["column"] == c}
+                                                 >= set(args.seeds) for c in (new, base))]
             if done:
                 notes.append(f"{new} − {base}, over the {len(done)} task(s) with every seed: "
                              + paired_cell(records, args.seeds, done, new, base))
+    if missing:
+        notes.append(f"No {STRIDE1} pass for: " + "; ".join(f"{t} seed{'s' * (len(v) > 1)} {', '.join(map(str, v))}"
+                                                            for t, v in missing.items())
+                     + ". A pass serves the run's checkpoint, which git does not keep: it is made on the machine "
+                       "that trained the network (run this command before its run folder is gone); a retrained "
+                       "network would not be the recorded one.")
     figure = success_by_task_figure(args, records, labels, "Meta-World, post hoc: DP+HiPolicy's network at stride 1")
     return write_results(args, "Meta-World diagnosis: HiPolicy's strides on displacement actions (post hoc)", notes,
                          table, records, figure)
