@@ -445,7 +445,7 @@ def diagnose_table(args: DiagnoseArgs) -> str:
     def cells(task: str) -> list[str]:
         cov = coverage.get(task, {}).get("strides", {})
         hip_recs = [r for r in records if r["task"] == task and r["column"] == hip.label]
-        share = [np.mean([r.get(f"stride{s}_frac") or 0.0 for r in hip_recs]) for s in (1, 2, 3)]
+        share = [np.mean([r.get(f"stride{s}_frac") or 0.0 for r in hip_recs]) for s in (1, 2, 3)] if hip_recs else []
         return [*(f"{cov[s]['median']:.2f}" if s in cov else "–" for s in ("2", "3")),
                 f"{100 * coverage[task]['saturated_xyz']:.0f}" if task in coverage else "–",
                 " / ".join(f"{100 * v:.0f}" for v in share) if hip_recs else "–"]
