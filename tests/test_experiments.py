@@ -306,6 +306,41 @@ def _fake_records(columns, tasks, seeds, rng, episodes=10):
     return records
 
 
+def test_budget_table_and_its_figure_of_success_and_steps(tmp_path, monkeypatch):
+    """budget.md / .png: per task and step count, success and steps to success of DP and DP+HiPolicy; the figure's
+    top row is success, its bottom row steps to success, each point the seed mean of the table's cell."""
+    import matplotlib.figure
+
+    rng = np.random.default_rng(1)
+    default, longer = BUDGETS["smoke"].train.num_steps, 4 * BUDGETS["smoke"].train.num_steps
+    fake = _fake_records(["DP", "DP+HiPolicy"], ("press_button", "stack_cubes"), (0, 1, 2), rng)
+    fake += [{**r, "regime": {"train.num_steps": longer}} for r in
+             _fake_records(["DP", "DP+HiPolicy"], ("press_button", "stack_cubes"), (0, 1, 2), rng)]
+    monkeypatch.setattr(tables, "collect", lambda args, columns: fake)
+    drawn = []
+    save = matplotlib.figure.Figure.savefig
+
+    def record_then_save(fig, *a, **k):  # each panel's y label and, per error-bar series, its points
+        drawn.append([(ax.get_ylabel(), [c.lines[0].get_ydata() for c in ax.containers]) for ax in fig.axes])
+        return save(fig, *a, **k)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", record_then_save)
+    args = tables.BudgetArgs(budget="smoke", seeds=(0, 1, 2), steps=(default, longer), results=str(tmp_path),
+                             runs=str(tmp_path / "runs"), data=str(tmp_path / "data"), progress=False)
+    text = open(paper.main(args)).read()
+    assert (tmp_path / "budget.png").stat().st_size > 0
+    ((top_left, *_, bottom_right),) = drawn
+    panels = [label for label, _ in drawn[0]]
+    assert panels == ["success rate (%)"] * 2 + ["steps to success (successful episodes)"] * 2
+    rows = {tuple(line.split(" | ")[:2]): line.split(" | ") for line in text.splitlines() if line.startswith("| ")}
+    hip_steps = [float(rows[("| stack_cubes", f"{n:,}" + (" (budget)" if n == default else ""))][5].split()[0])
+                 for n in (default, longer)]
+    dp_success = [float(rows[("| press_button", f"{n:,}" + (" (budget)" if n == default else ""))][2].split()[0])
+                  for n in (default, longer)]
+    np.testing.assert_allclose(top_left[1][0], dp_success, atol=0.051)  # DP's success on press_button
+    np.testing.assert_allclose(bottom_right[1][1], hip_steps, atol=0.051)  # DP+HiPolicy's steps on stack_cubes
+
+
 def test_paper_tables_on_fake_numbers(tmp_path, monkeypatch):
     rng = np.random.default_rng(0)
     monkeypatch.setattr(tables, "collect", lambda args, columns: _fake_records(

@@ -26,10 +26,10 @@ from hipolicy_jax.campaigns.campaign import (README_BEGIN, README_END, Campaign,
                                             choose_low_regime, parse_until, work_off, pilot_candidates, readme_section, schedule,
                                         shard, update_readme)
 from hipolicy_jax.runs.lock import RunLockedError
-from hipolicy_jax.campaigns.report import (RATE_BOUNDS, bar_figure, changes_text, ci, cost_note, finding_text,
-                                           interval_text, leave_one_out, markdown_table, outcomes, p_text, paired,
-                                           paired_bootstrap, paired_cell, relative_gain, spent_measured_text,
-                                           stride_cell, task_mean, verdict_text)
+from hipolicy_jax.campaigns.report import (COUNT_BOUNDS, RATE_BOUNDS, bar_figure, changes_text, ci, cost_note,
+                                           finding_text, interval_text, leave_one_out, markdown_table, outcomes,
+                                           p_text, paired, paired_bootstrap, paired_cell, relative_gain,
+                                           spent_measured_text, stride_cell, task_mean, verdict_text)
 from hipolicy_jax.runs.store import read_json, write_json
 from hipolicy_jax.runs.train import RunConfig, cpu_cores
 
@@ -515,31 +515,37 @@ def budget_table(args: BudgetArgs) -> str:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        fig, axes = plt.subplots(1, len(args.tasks), figsize=(4.2 * len(args.tasks), 3.6), squeeze=False)
-        for ax, task in zip(axes[0], args.tasks):
-            for j, c in enumerate(BUDGET_COLUMNS):
-                pts = [(n, stats.seed_mean(outcomes(budget_records(records, n, default), "success_rate",
-                                                    seeds, task=task, column=c.label), bounds=RATE_BOUNDS))
-                       for n in args.steps]
-                pts = [(n, iv) for n, iv in pts if np.isfinite(iv.mean)]
-                if not pts:
-                    continue
-                x = np.array([n for n, _ in pts], float) * (1.0 + 0.03 * (j - 0.5))
-                m = np.array([100 * iv.mean for _, iv in pts])
-                err = np.array([[100 * (iv.mean - iv.low), 100 * (iv.high - iv.mean)] for _, iv in pts]).T
-                ax.errorbar(x, m, yerr=err, marker="o", capsize=3, label=c.label, color=f"C{j}")
-            ax.set_xscale("log")
-            ax.minorticks_off()  # the log axis' minor labels (3×10³ ...) would overprint the step counts
-            ax.set_xticks(list(args.steps), [f"{n:,}" for n in args.steps])
-            ax.set_xlim(min(args.steps) / 1.3, max(args.steps) * 1.3)
-            ax.set_xlabel(f"training steps (batch {BUDGETS[args.budget].train.batch_size})")
-            ax.set_ylabel("success rate (%)")
-            ax.set_ylim(-3, 103)
-            ax.set_title(task, fontsize=10)
-            ax.grid(alpha=0.3)
-            if ax.get_legend_handles_labels()[0]:
-                ax.legend(fontsize=8)
-        fig.suptitle("success vs training budget (95 % t intervals over seeds)", fontsize=10)
+        panels = (("success_rate", 100.0, RATE_BOUNDS, "success rate (%)"),
+                  ("mean_steps_success", 1.0, COUNT_BOUNDS, "steps to success (successful episodes)"))
+        fig, axes = plt.subplots(len(panels), len(args.tasks), figsize=(4.2 * len(args.tasks), 6.6), squeeze=False)
+        for row, (metric, scale, bounds, ylabel) in zip(axes, panels):
+            for ax, task in zip(row, args.tasks):
+                for j, c in enumerate(BUDGET_COLUMNS):
+                    pts = [(n, stats.seed_mean(outcomes(budget_records(records, n, default), metric, seeds,
+                                                        task=task, column=c.label), bounds=bounds))
+                           for n in args.steps]
+                    pts = [(n, iv) for n, iv in pts if np.isfinite(iv.mean)]
+                    if not pts:
+                        continue
+                    x = np.array([n for n, _ in pts], float) * (1.0 + 0.03 * (j - 0.5))
+                    m = np.array([scale * iv.mean for _, iv in pts])
+                    err = np.array([[scale * (iv.mean - iv.low), scale * (iv.high - iv.mean)] for _, iv in pts]).T
+                    ax.errorbar(x, m, yerr=err, marker="o", capsize=3, label=c.label, color=f"C{j}")
+                ax.set_xscale("log")
+                ax.minorticks_off()  # the log axis' minor labels (3×10³ ...) would overprint the step counts
+                ax.set_xticks(list(args.steps), [f"{n:,}" for n in args.steps])
+                ax.set_xlim(min(args.steps) / 1.3, max(args.steps) * 1.3)
+                ax.set_xlabel(f"training steps (batch {BUDGETS[args.budget].train.batch_size})")
+                ax.set_ylabel(ylabel)
+                if metric == "success_rate":
+                    ax.set_ylim(-3, 103)
+                else:
+                    ax.set_ylim(bottom=0)
+                ax.set_title(task, fontsize=10)
+                ax.grid(alpha=0.3)
+                if ax.get_legend_handles_labels()[0]:
+                    ax.legend(fontsize=8)
+        fig.suptitle("success and steps to success vs training budget (95 % t intervals over seeds)", fontsize=10)
         fig.tight_layout()
         fig.savefig(path, dpi=110)
         plt.close(fig)
