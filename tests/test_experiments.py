@@ -770,17 +770,25 @@ def test_campaign_shards_split_runs_and_the_plan_estimates_from_records(tmp_path
     resumed = model.estimate(camp, todo[1:2])[0]
     assert (resumed["trains"], resumed["seconds"]) == (True, 10.0 * (steps - steps // 2) + 10.0)
     shutil.rmtree(ckpt)
-    # a campaign estimates once; an unmeasured job is estimated again before it starts, from the records then
-    assert CostModel.refresh(str(tmp_path / "records"), str(tmp_path / "runs"), camp, rows[5])["seconds"] is None
-    assert CostModel.refresh(str(tmp_path / "records"), str(tmp_path / "runs"), camp, rows[1]) is rows[1]
+    # a campaign estimates once when it starts; each pending job is estimated again before it starts, from the
+    # records then: an unmeasured one once its kind has a record, a measured one at the rate newer records measured
+    assert model.refresh(camp, rows[5])["seconds"] is None
+    assert model.refresh(camp, rows[0]) is rows[0]  # recorded
+    assert model.refresh(camp, rows[1]) == rows[1]
     dp3_cfg = camp.run_config("stack_cubes", dp3, 0)
     pc = tmp_path / "records" / "smoke" / "press_button" / "pointcloud" / "dp" / "seed0.json"
     pc.parent.mkdir(parents=True)
     pc.write_text(json.dumps({"version": 2, "policy": config_to_dict(dp3_cfg.policy),
                               "train": config_to_dict(dp3_cfg.train),
                               "training": {"steps": 10, "wall_time_s": 300.0, "cpu_cores": 1}, "evaluations": {}}))
-    fresh = CostModel.refresh(str(tmp_path / "records"), str(tmp_path / "runs"), camp, rows[5])
+    newer = CostModel(str(tmp_path / "records"), str(tmp_path / "runs"))
+    fresh = newer.refresh(camp, rows[5])
     assert (fresh["done"], fresh["trains"], fresh["seconds"]) == (False, True, 30.0 * steps + 10.0)
+    # a record that measured its process CPU time (the first rate free of other jobs' share of the cores) sets the
+    # per-step rate of the runs after it: 2 CPU-s a step, not the 10 s of wall time x cores
+    write_record("dp_t30", {"steps": 10, "wall_time_s": 100.0, "cpu_cores": 1, "cpu_time_s": 20.0})
+    fresh = CostModel(str(tmp_path / "records"), str(tmp_path / "runs")).refresh(camp, rows[1])
+    assert (fresh["trains"], fresh["seconds"]) == (True, 2.0 * steps + 10.0)
     rows = rows[:-1]
     text = Path(tables.write_plan(args, rows)).read_text()
     assert "1 of 6 evaluations recorded" in text and "1 unmeasured" in text

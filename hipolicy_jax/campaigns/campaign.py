@@ -481,13 +481,11 @@ class CostModel:
             rows.append({"job": job, "done": done, "trains": needs_train, "seconds": seconds})
         return rows
 
-    @classmethod
-    def refresh(cls, records: str, runs: str, camp: Campaign, row: dict) -> dict:
-        """``row`` (an ``estimate`` row) as the records on disk estimate it now when it was unmeasured: a campaign
-        estimates once when it starts, and the first run of an observation type measures the rest of its kind."""
-        if row["done"] or row["seconds"] is not None:
-            return row
-        return cls(records, runs).estimate(camp, [row["job"]])[0]
+    def refresh(self, camp: Campaign, row: dict) -> dict:
+        """``row`` (an ``estimate`` row, made when the campaign started) as this model's records estimate it: each
+        run a campaign finishes measures the ones after it (the first run of an observation type its kind; the
+        first run that measured its process CPU time the wall-time upper bounds of older records)."""
+        return row if row["done"] else self.estimate(camp, [row["job"]])[0]
 
 
 def parse_until(text: str, now: float | None = None) -> float | None:
@@ -552,13 +550,16 @@ def work_off(camp: Campaign, costs: list[dict], run_of: Callable[[Job], str], *,
     bar = tqdm(total=round(sum(guess if c["seconds"] is None else c["seconds"] for c in costs)), desc="campaign",
                unit="s", disable=not progress, dynamic_ncols=True,
                bar_format="{l_bar}{bar}| {percentage:.0f}% of the estimated work [{elapsed}<{remaining}] {postfix}")
+    model = None  # the records as they are now: made again after each job that ran (it measured the next ones)
     for i, c in enumerate(costs):
         task, col, seed, changes = c["job"]
         label = f"{i + 1}/{len(costs)}: {task} seed {seed} {col.label} {changes_text(dict(changes))}"
         bar.set_postfix_str(label)
-        if not deadline.admits(CostModel.refresh(camp.records, camp.runs, camp, c), run_of(c["job"])):
+        model = model or CostModel(camp.records, camp.runs)
+        now = model.refresh(camp, c)
+        if not deadline.admits(now, run_of(c["job"])):
             bar.update(round(guess if c["seconds"] is None else c["seconds"]))
-            estimate = "unmeasured" if c["seconds"] is None else f"{c['seconds'] / deadline.cores:.0f} s"
+            estimate = "unmeasured" if now["seconds"] is None else f"{now['seconds'] / deadline.cores:.0f} s"
             tqdm.write(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: skipped, estimated {estimate}, "
                        f"{max(deadline.seconds_left(), 0):.0f} s left before --until {until}")
             continue
@@ -570,6 +571,8 @@ def work_off(camp: Campaign, costs: list[dict], run_of: Callable[[Job], str], *,
             tqdm.write(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: skipped, {e}")
             continue
         bar.update(round(guess if c["seconds"] is None else c["seconds"]))
+        if not now["done"]:
+            model = None
         if not progress and not c["done"] and evaluation is not None:  # a background run's log: a line a job
             print(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: "
                   f"{100 * evaluation['success_rate']:.0f} % in {time.perf_counter() - t0:.0f} s", flush=True)
