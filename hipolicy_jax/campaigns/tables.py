@@ -862,7 +862,7 @@ def findings_table(args: "CampaignArgs", tables: list[PaperArgs]) -> str | None:
                     cells.append("–")
                     continue
                 verdict = stats.verdict(c.diff)
-                if verdict in counts:  # one seed so far: a point, no test, no verdict
+                if verdict in counts:  # not "–" (one seed so far: a point, no test, not counted)
                     counts[verdict] += 1
                 cells.append(finding_text(c))
             for v in VERDICTS:
