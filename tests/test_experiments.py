@@ -993,16 +993,19 @@ def test_campaign_skips_the_runs_another_campaign_process_works_on(tmp_path, cap
 
 
 def test_readme_section_from_table_files(tmp_path):
-    """The README's campaign section: each table's markdown one heading level down, named by its file, with its plot;
-    only the text between the markers is replaced."""
+    """The README's campaign section: each table's markdown one heading level down (its inner headings too), named by
+    its file, with its plot; only the text between the markers is replaced."""
     from hipolicy_jax.campaigns.campaign import README_BEGIN, README_END, readme_section, update_readme
     results = tmp_path / "results"
     results.mkdir()
     (results / "main_rlow.md").write_text("# Main results\n\n- Cost: 1.0 CPU-hours\n\n| a |\n|---|\n| 1 |\n")
     (results / "main_rlow.png").write_bytes(b"png")
-    (results / "ablation_rlow.md").write_text("# Ablation\n\n| b |\n")
+    (results / "ablation_rlow.md").write_text("# Ablation\n\n| b |\n\n## Per seed\n\n| c |\n")
     section = readme_section([str(results / "main_rlow.md"), str(results / "ablation_rlow.md")], str(tmp_path))
     assert section.startswith("### Main results — `results/main_rlow.md`")
+    assert "\n### Ablation — `results/ablation_rlow.md`\n" in section and "\n#### Per seed\n" in section
+    assert "## Per seed" not in section.replace("#### Per seed", "")
+    assert readme_section([str(results / "ablation_rlow.md")], str(tmp_path), level=4).startswith("#### Ablation")
     assert "![main_rlow.png](results/main_rlow.png)" in section and "ablation_rlow.png" not in section
     readme = tmp_path / "README.md"
     readme.write_text(f"intro\n{README_BEGIN}\nold\n{README_END}\nafter\n")

@@ -417,7 +417,11 @@ def test_metaworld_campaign_end_to_end(tmp_path, monkeypatch):
 
     # the main table: its own runs (the pilot's are not table runs), the demos reused
     main_flags = [*flags, "--seeds", "0", "--pointcloud-tasks", "assembly", "--published",
-                  str(tmp_path / "published.json")]
+                  str(tmp_path / "published.json"), "--readme", str(tmp_path / "README.md")]
+    from hipolicy_jax.campaigns.metaworld import readme_markers
+
+    begin, end = readme_markers(str(tmp_path / "res"))
+    (tmp_path / "README.md").write_text(f"{begin}\n{end}\n")
     (tmp_path / "published.json").write_text(json.dumps({"tasks": {"assembly": {"dp_image": [15, 1], "dp3": [99, 1]}}}))
     md = metaworld(parse_args(["main", *main_flags]))
     text = open(md).read()
@@ -439,6 +443,9 @@ def test_metaworld_campaign_end_to_end(tmp_path, monkeypatch):
     assert hip["policy"]["encoder"]["obs_type"] == "pointcloud" and hip["policy"]["chunk"]["strides"] != [1]
     assert metaworld(parse_args(["main", *main_flags, "--from-records"])) == md
     assert open(md).read().split("| Task")[1:] == text.split("| Task")[1:]
+    section = (tmp_path / "README.md").read_text()  # the README's copy of the table, under the count of runs
+    assert section.startswith(f"{begin}\n\n4 of 4 runs recorded.\n\n#### Meta-World: success rate (%)")
+    assert text.split("| Task")[1].split("\n## ")[0] in section and "\n##### DP3's metric" in section
 
     # every evaluation was kept in its run dir as it finished: with the record lost (a campaign stopped before
     # writing it), the campaign makes it again from what was kept, without running an episode
@@ -570,3 +577,37 @@ def test_the_plan_states_what_is_left_and_what_was_spent(tmp_path):
     assert "spent + left: 3.5 CPU-hours. Counted as wall time × cores, as the protocol's budget counts them: 2.5 spent." in text
     assert "| metaworld:basketball | DP+HiPolicy | 2 | yes | – |" in text
     assert "| metaworld:basketball | DP | 0 |" not in text  # recorded: not pending
+
+
+def test_main_table_rewrites_its_readme_section_only(tmp_path):
+    """``main`` ends by copying its table into the README between its own markers (one pair per ``--results``), under
+    a line counting the recorded runs; another table's markers and the README's other text stay as they are, and a
+    README without the markers is left alone."""
+    from hipolicy_jax.campaigns.metaworld import MainArgs, readme_markers, write_readme_section
+
+    res = tmp_path / "results" / "metaworld"
+    res.mkdir(parents=True)
+    md = res / "main.md"
+    md.write_text("# Meta-World: success rate (%)\n\n| a |\n|---|\n| 1 |\n\n## DP3's metric\n\n| b |\n")
+    (res / "main.png").write_bytes(b"png")
+    readme = tmp_path / "README.md"
+    begin, end = readme_markers(str(res))
+    other_begin, other_end = readme_markers(str(res / "target"))
+    assert begin != other_begin and end != other_end
+    readme.write_text(f"### Meta-World\n\n{begin}\nold\n{end}\n\n{other_begin}\nkept\n{other_end}\n")
+    args = MainArgs(tasks=("basketball",), results=str(res), readme=str(readme))
+    write_readme_section(args, str(md), 4, 6)
+    text = readme.read_text()
+    section = text.split(begin)[1].split(end)[0]
+    assert "old" not in section and "\nkept\n" in text
+    assert section.strip().startswith("4 of 6 runs recorded; what is left and its estimated cost: "
+                                      f"[plan.md]({os.path.relpath(res / 'plan.md', tmp_path)}).")
+    assert f"\n#### Meta-World: success rate (%) — `{os.path.relpath(md, tmp_path)}`\n" in section
+    assert "\n##### DP3's metric\n" in section and "| 1 |" in section and "| b |" in section
+    assert f"![main.png]({os.path.relpath(res / 'main.png', tmp_path)})" in section
+    write_readme_section(args, str(md), 6, 6)
+    assert readme.read_text().split(begin)[1].split(end)[0].strip().startswith("6 of 6 runs recorded.\n")
+    bare = tmp_path / "BARE.md"
+    bare.write_text("no markers\n")
+    write_readme_section(dataclasses.replace(args, readme=str(bare)), str(md), 4, 6)
+    assert bare.read_text() == "no markers\n"

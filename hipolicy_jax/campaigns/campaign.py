@@ -583,18 +583,19 @@ README_BEGIN = "<!-- campaign tables: written by `python -m experiments.paper ca
 README_END = "<!-- end of campaign tables -->"
 
 
-def readme_section(table_paths: list[str], readme_dir: str) -> str:
-    """The README's campaign section from the tables' markdown files: each table's title (one level below the
-    README's results heading), its notes (with the cost line), the table and its plot; links relative to the
-    README."""
+def readme_section(table_paths: list[str], readme_dir: str, level: int = 3) -> str:
+    """The README's section from the tables' markdown files: each table's title at heading ``level`` (one below the
+    README's results heading) named by its file, its other headings moved down as far, its notes (with the cost
+    line), tables and plot; links relative to the README."""
     parts = []
     for md in table_paths:
         with open(md) as f:
             text = f.read().strip()
         lines = text.splitlines()
         rel = os.path.relpath(md, readme_dir)
-        if lines and lines[0].startswith("# "):
-            lines[0] = f"### {lines[0][2:]} — `{rel}`"
+        lines = ["#" * (level - 1) + line if line.startswith("#") else line for line in lines]
+        if lines and lines[0].startswith("#" * level + " "):
+            lines[0] = f"{lines[0]} — `{rel}`"
         png = md[:-3] + ".png"
         if os.path.exists(png):
             lines += ["", f"![{os.path.basename(png)}]({os.path.relpath(png, readme_dir)})"]
@@ -602,15 +603,15 @@ def readme_section(table_paths: list[str], readme_dir: str) -> str:
     return "\n\n".join(parts)
 
 
-def update_readme(readme: str, section: str) -> bool:
-    """Replace what stands between ``README_BEGIN`` and ``README_END`` in ``readme`` with ``section``; False (and
+def update_readme(readme: str, section: str, begin: str = README_BEGIN, end: str = README_END) -> bool:
+    """Replace what stands between the markers ``begin`` and ``end`` in ``readme`` with ``section``; False (and
     nothing written) when the markers are missing."""
     with open(readme) as f:
         text = f.read()
-    start, end = text.find(README_BEGIN), text.find(README_END)
-    if start < 0 or end < start:
+    start, stop = text.find(begin), text.find(end)
+    if start < 0 or stop < start:
         return False
-    new = text[:start + len(README_BEGIN)] + "\n\n" + section.strip() + "\n\n" + text[end:]
+    new = text[:start + len(begin)] + "\n\n" + section.strip() + "\n\n" + text[stop:]
     with open(readme, "w") as f:
         f.write(new)
     return True

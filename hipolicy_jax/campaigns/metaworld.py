@@ -23,7 +23,8 @@ from tqdm.auto import tqdm
 
 from hipolicy_jax.campaigns.budgets import (BUDGETS, DP, METAWORLD_PILOT, METAWORLD_PILOT_STEPS,
                                             METAWORLD_POINTCLOUD_TASKS, METAWORLD_STATE_TASKS, METAWORLD_STEPS)
-from hipolicy_jax.campaigns.campaign import EXTERNAL_EVAL_SEED, Column, CostModel, Job, Periodic, work_off
+from hipolicy_jax.campaigns.campaign import (EXTERNAL_EVAL_SEED, Column, CostModel, Job, Periodic, readme_section,
+                                             update_readme, work_off)
 from hipolicy_jax.campaigns.report import markdown_table, spent_measured_text
 from hipolicy_jax.campaigns.tables import (PAIRED_NOTE, PaperArgs, table_record, campaign, demo_steps,
                                            eval_episodes, grouped_rows, success_by_task_figure, write_results)
@@ -98,6 +99,8 @@ class MainArgs(MetaWorldArgs):
     published: str = "results/metaworld/dp3_published.json"  # DP3's Table XVIII
     until: str = ""  # HH:MM or YYYY-MM-DD HH:MM: start only the jobs estimated to end before it
     plan: bool = False  # write what is left (results/metaworld/plan.md) and stop
+    # its section for this table (between readme_markers(results)) is rewritten from the table; '' = leave it
+    readme: str = "README.md"
 
     def default_tasks(self) -> tuple[str, ...]:
         return protocol_tasks(METAWORLD_STATE_TASKS)
@@ -286,6 +289,27 @@ def write_plan(args: MainArgs, costs: list[dict], spent: dict[str, float]) -> st
     return path
 
 
+def readme_markers(results: str) -> tuple[str, str]:
+    """The README's markers around the section ``main --results RESULTS`` writes: one pair per table."""
+    md = os.path.join(results, "main.md")
+    return (f"<!-- Meta-World table: written by `python -m experiments.metaworld main` from {md} -->",
+            f"<!-- end of Meta-World table {md} -->")
+
+
+def write_readme_section(args: MainArgs, md: str, recorded: int, jobs: int) -> None:
+    """The README's section for this table (a level-4 copy of ``md`` with its plot, under a line saying how many of
+    the table's runs are recorded); the README is left as is, with a line saying so, when its markers are absent."""
+    readme_dir = os.path.dirname(os.path.abspath(args.readme))
+    plan = os.path.relpath(os.path.join(args.results, "plan.md"), readme_dir)
+    head = (f"{recorded} of {jobs} runs recorded" + ("" if recorded == jobs else f"; what is left and its estimated "
+                                                     f"cost: [{os.path.basename(plan)}]({plan})") + ".")
+    begin, end = readme_markers(args.results)
+    if update_readme(args.readme, head + "\n\n" + readme_section([md], readme_dir, level=4), begin, end):
+        print(f"updated the Meta-World table in {args.readme}")
+    else:
+        print(f"{args.readme}: no markers ({begin!r} ... {end!r}); README left as is")
+
+
 def published_numbers(path: str) -> dict[str, dict]:
     """DP3's Table XVIII by bare task name ({} when the file is missing)."""
     return read_json(path).get("tasks", {}) if os.path.exists(path) else {}
@@ -359,6 +383,8 @@ def main_table(args: MainArgs) -> str:
                 f"The gaps: our column's mean over its {len(args.seeds)} seeds minus the published mean, once every "
                 "seed is recorded; our DP reads the 39-D state, the published DP images.\n\n"
                 + metric_table + "\n")
+    if args.readme:
+        write_readme_section(args, md, len(records), len(jobs))
     return md
 
 
