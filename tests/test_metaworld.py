@@ -594,6 +594,7 @@ def test_main_table_rewrites_its_readme_section_only(tmp_path):
     begin, end = readme_markers(str(res))
     other_begin, other_end = readme_markers(str(res / "target"))
     assert begin != other_begin and end != other_end
+    assert readme_markers(str(res) + "/") == (begin, end)
     readme.write_text(f"### Meta-World\n\n{begin}\nold\n{end}\n\n{other_begin}\nkept\n{other_end}\n")
     args = MainArgs(tasks=("basketball",), results=str(res), readme=str(readme))
     write_readme_section(args, str(md), 4, 6)

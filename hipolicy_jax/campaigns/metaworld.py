@@ -291,7 +291,7 @@ def write_plan(args: MainArgs, costs: list[dict], spent: dict[str, float]) -> st
 
 def readme_markers(results: str) -> tuple[str, str]:
     """The README's markers around the section ``main --results RESULTS`` writes: one pair per table."""
-    md = os.path.join(results, "main.md")
+    md = os.path.normpath(os.path.join(results, "main.md"))
     return (f"<!-- Meta-World table: written by `python -m experiments.metaworld main` from {md} -->",
             f"<!-- end of Meta-World table {md} -->")
 
