@@ -612,3 +612,27 @@ def test_main_table_rewrites_its_readme_section_only(tmp_path):
     bare.write_text("no markers\n")
     write_readme_section(dataclasses.replace(args, readme=str(bare)), str(md), 4, 6)
     assert bare.read_text() == "no markers\n"
+
+
+def test_main_no_tables_writes_only_the_plan(tmp_path):
+    """``main --tasks X --no-tables`` (a run narrowed to force a few jobs) leaves ``main.md`` and the README table
+    alone and ends by writing its plan of what is left; without the flag the same call rebuilds both."""
+    from experiments.metaworld import main as metaworld, parse_args
+    from hipolicy_jax.campaigns.metaworld import readme_markers
+
+    res = tmp_path / "results"
+    readme = tmp_path / "README.md"
+    begin, end = readme_markers(str(res))
+    readme.write_text(f"intro\n{begin}\nthe full table\n{end}\n")
+    flags = ["--tasks", "basketball", "--runs", str(tmp_path / "runs"), "--records", str(tmp_path / "records"),
+             "--results", str(res), "--data", str(tmp_path / "data"), "--readme", str(readme), "--no-progress",
+             "--until", "2000-01-01 00:00"]  # a deadline already past: nothing starts
+    args = parse_args(["main", *flags, "--no-tables"])
+    assert not args.tables
+    plan = metaworld(args)
+    assert sorted(p.name for p in res.iterdir()) == ["plan.md"] and plan == str(res / "plan.md")
+    assert "6 of 6 evaluations pending" in (res / "plan.md").read_text()
+    assert "the full table" in readme.read_text() and not (tmp_path / "runs").exists()
+    metaworld(parse_args(["main", *flags]))
+    assert (res / "main.md").exists() and "the full table" not in readme.read_text()
+    assert "0 of 6 runs recorded" in readme.read_text().split(begin)[1]

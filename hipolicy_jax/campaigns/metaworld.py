@@ -99,6 +99,9 @@ class MainArgs(MetaWorldArgs):
     published: str = "results/metaworld/dp3_published.json"  # DP3's Table XVIII
     until: str = ""  # HH:MM or YYYY-MM-DD HH:MM: start only the jobs estimated to end before it
     plan: bool = False  # write what is left (results/metaworld/plan.md) and stop
+    # end by rebuilding the table and the README section from the records; --no-tables writes only the plan of what
+    # is left, so that a run narrowed to a few tasks (--tasks) leaves the full table alone
+    tables: bool = True
     # its section for this table (between readme_markers(results)) is rewritten from the table; '' = leave it
     readme: str = "README.md"
 
@@ -326,6 +329,9 @@ def main_table(args: MainArgs) -> str:
             return write_plan(args, costs, model.spent(args.budget))
         work_off(camp, costs, lambda j: camp.run_config(j.task, j.col, j.seed, dict(j.changes)).out_dir(),
                  until=args.until, progress=args.progress)
+        if not args.tables:
+            now = CostModel(args.records, args.runs)  # read again: the runs just done are recorded
+            return write_plan(args, now.estimate(camp, jobs), now.spent(args.budget))
     reader = campaign(dataclasses.replace(args, from_records=True))
     records = []
     for task, col, seed, changes in jobs:
