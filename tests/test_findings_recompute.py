@@ -182,7 +182,9 @@ def _check_cell(cell: str, groups: list[np.ndarray] | None, what: str):
     est = _seed_level(groups)
     m, lo, hi, _, verdict = _parse(cell)
     _close(m, 100 * est[0], what + " (mean)")
-    if math.isfinite(est[1]):
+    if math.isfinite(est[1]) and est[1] == est[2]:  # no width (every episode of every seed agrees): 'm' alone
+        assert math.isnan(lo) and math.isnan(hi), f"{what}: the records give a zero-width interval, the table {cell!r}"
+    elif math.isfinite(est[1]):
         _close(lo, 100 * est[1], what + " (low)")
         _close(hi, 100 * est[2], what + " (high)")
     assert (verdict or "–") == _verdict(est[1], est[2]), f"{what}: verdict {verdict} vs {_verdict(est[1], est[2])}"
