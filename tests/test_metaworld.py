@@ -379,7 +379,7 @@ def test_external_summary_and_dp3_metric():
 
 @needs_venv
 @pytest.mark.slow
-def test_metaworld_campaign_end_to_end(tmp_path, monkeypatch):
+def test_metaworld_campaign_end_to_end(tmp_path, monkeypatch, capsys):
     """The Meta-World campaign stage (smoke budget): the pilot collects demos through the bridge, trains DP and
     evaluates its final network and its kept checkpoint through the served policy; the main table trains and
     evaluates all four columns (state and point clouds) with periodic evaluations for DP3's metric, one record per
@@ -514,6 +514,26 @@ def test_metaworld_campaign_end_to_end(tmp_path, monkeypatch):
     state_eval.unlink()
     text = open(metaworld(parse_args(["diagnose", *diag, "--from-records"]))).read()
     assert f"No {STRIDE1} pass for: metaworld:assembly seed 0. A pass serves the run's checkpoint" in text
+    # a second diagnose process while one holds the run (a live pid's lock): it leaves the network to that one
+    import socket
+
+    state_dir = tmp_path / "runs" / "smoke" / "metaworld_assembly" / "state" / "hipolicy" / "seed0"
+    assert (state_dir / "ckpt").exists() or any(state_dir.iterdir())
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+    try:
+        (state_dir / ".campaign.lock").write_text(json.dumps({"pid": sleeper.pid, "host": socket.gethostname()}))
+        capsys.readouterr()
+        text = open(metaworld(parse_args(["diagnose", *diag]))).read()
+        assert not state_eval.exists() and f"No {STRIDE1} pass for: metaworld:assembly seed 0." in text
+        assert f"skipped: {state_dir} is in use by another campaign or diagnose process (pid {sleeper.pid}" in \
+            capsys.readouterr().out
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+    (state_dir / ".campaign.lock").unlink()
+    metaworld(parse_args(["diagnose", *diag]))  # the lock gone: the pass is made again from what the run kept
+    assert json.loads(state_eval.read_text())["without_eg"]["success"] == report["without_eg"]["success"]
+    assert not (state_dir / ".campaign.lock").exists()  # released
 
 
 def test_demo_coverage_of_displacement_demos(tmp_path):

@@ -240,6 +240,54 @@ def test_concurrent_demo_collection_across_processes_happens_once(tmp_path):
     assert sorted(os.listdir(tmp_path / "data")) == [".demo.zarr.lock", "demo.zarr"]
 
 
+
+EXTERNAL_COLLECT_RACER = """
+import os, sys, time
+from hipolicy_jax.campaigns.campaign import Campaign, Column
+from hipolicy_jax.runs import external
+
+data, calls, me, other = sys.argv[1:5]
+
+def slow_collect(name, episodes, path, *, num_points, max_steps, log=print):  # stand-in for the bridge's venv
+    with open(calls, "a") as f:
+        f.write(f"{os.getpid()} {name} {episodes} {num_points} {max_steps}\\n")
+    time.sleep(1.0)  # the other process reaches the lock while this one collects
+    if os.path.exists(path):
+        raise FileExistsError(f"{path} already exists")  # what the bridge does when collecting twice
+    os.makedirs(path)
+    return "collected"
+
+external.collect_demos = slow_collect
+camp = Campaign("smoke", runs=os.path.join(data, "..", "runs"), data=data, progress=False)
+cfg = camp.run_config("metaworld:assembly", Column("DP"), 0)
+open(me, "w").close()
+while not os.path.exists(other):  # barrier: both processes ask for the buffer at the same moment
+    time.sleep(0.01)
+print(camp.ensure_demos(cfg, 0))
+"""
+
+
+def test_concurrent_external_demo_collection_happens_once(tmp_path):
+    """Two campaign PROCESSES (a ``metaworld main`` per core) needing one missing external demo buffer: exactly
+    one runs the bridge's collection (the stand-in fails as the bridge does if asked to write an existing buffer),
+    the other reports that it waits for the lock, and both return the same path."""
+    data, calls = str(tmp_path / "data"), str(tmp_path / "calls")
+    ready = [str(tmp_path / f"ready{i}") for i in range(2)]
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    procs = [subprocess.Popen([sys.executable, "-c", EXTERNAL_COLLECT_RACER, data, calls, ready[i], ready[1 - i]],
+                              env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(2)]
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [err[-2000:] for _, err in outs]
+    lines = open(calls).read().splitlines()
+    assert len(lines) == 1  # collected once
+    pid, name, episodes, points, max_steps = lines[0].split()
+    assert int(pid) in [p.pid for p in procs] and name == "metaworld:assembly" and int(max_steps) == 200
+    waited = [p.pid for p, (out, _) in zip(procs, outs) if "waiting for another process collecting" in out]
+    assert len(waited) == 1 and waited[0] != int(pid)  # the other process really met the held lock
+    paths = {out.strip().splitlines()[-1] for out, _ in outs}
+    assert len(paths) == 1 and os.path.isdir(paths.pop())
+
+
 def test_no_startup_noise():
     """Importing the package (MuJoCo MJX included) prints nothing: no 'Failed to import warp' lines."""
     proc = subprocess.run([sys.executable, "-c", "import hipolicy_jax.envs, hipolicy_jax.evaluation"],

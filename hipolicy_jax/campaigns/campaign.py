@@ -27,6 +27,7 @@ import numpy as np
 from hipolicy_jax import envs, jsonio
 from hipolicy_jax.checkpoint import config_to_dict
 from hipolicy_jax.config import InferenceConfig
+from hipolicy_jax.data.replay_buffer import collection_lock
 from hipolicy_jax.evaluation import calibration
 from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
 from hipolicy_jax.campaigns.budgets import BUDGETS, run_config
@@ -216,16 +217,20 @@ class Campaign:
     def ensure_demos(self, cfg: RunConfig, seed: int) -> str:
         """``cfg.data_path()``; an external task's demo buffer is collected there when missing, with point clouds of
         the budget's point count (one buffer serves every column), episodes cut at the suite's campaign step limit
-        (an MJX task's demos are collected by its training)."""
+        (an MJX task's demos are collected by its training). Campaign processes that need the same missing buffer
+        collect it once: the first holds ``<dir>/.<name>.lock`` and the others wait for it, then reuse its buffer
+        (as ``envs.demos.load_or_collect`` does for MJX tasks)."""
         from hipolicy_jax.runs.external import collect_demos
 
-        if not cfg.external or os.path.exists(cfg.data_path()):
-            return cfg.data_path()
+        path = cfg.data_path()
+        if not cfg.external or os.path.exists(path):
+            return path
         points = self.run_config(cfg.task, Column("pc", "pointcloud"), seed).policy.encoder.num_points
         suite = envs.external.SUITES[cfg.task.partition(":")[0]]
-        os.makedirs(os.path.dirname(os.path.abspath(cfg.data_path())), exist_ok=True)
-        collect_demos(cfg.task, cfg.episodes, cfg.data_path(), num_points=points, max_steps=suite.eval_max_steps)
-        return cfg.data_path()
+        with collection_lock(path, "campaign"):
+            if not os.path.exists(path):  # another process may have collected it while this one waited
+                collect_demos(cfg.task, cfg.episodes, path, num_points=points, max_steps=suite.eval_max_steps)
+        return path
 
     def _external_evaluation(self, run: Run, col: Column, seed: int, inference: InferenceConfig, key: str,
                              periodic: Periodic | None) -> dict:

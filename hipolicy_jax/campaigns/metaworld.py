@@ -29,6 +29,7 @@ from hipolicy_jax.campaigns.report import markdown_table, spent_measured_text
 from hipolicy_jax.campaigns.tables import (PAIRED_NOTE, PaperArgs, table_record, campaign, demo_steps,
                                            eval_episodes, grouped_rows, success_by_task_figure, write_results)
 from hipolicy_jax.runs.store import read_json, write_json
+from hipolicy_jax.runs.lock import CAMPAIGN_LOCK_FILE, RunLock, RunLockedError
 
 PROTOCOL_FILE = "results/metaworld/PROTOCOL.md"
 # The protocol's tasks in its order (round robin over DP3's groups), with their DP3 group.
@@ -454,9 +455,15 @@ def diagnose_table(args: DiagnoseArgs) -> str:
                 continue
             if not os.path.exists(path) and not args.from_records and finished(camp.run_config(task, hip, seed,
                                                                                                 changes)):
-                report = evaluate_report(run_dir, read_inference(run_dir), episodes=eval_episodes(args), seed=seed,
-                                         out=os.path.join(run_dir, "eval"), log=lambda msg: None)
-                write_json(path, report)
+                try:  # one process evaluates a network: another diagnose (or a campaign on the run) holds it
+                    with RunLock(run_dir, CAMPAIGN_LOCK_FILE, "campaign or diagnose process",
+                                 "this diagnose leaves it to that one"):
+                        if not os.path.exists(path):  # that process may have just written it
+                            report = evaluate_report(run_dir, read_inference(run_dir), episodes=eval_episodes(args),
+                                                     seed=seed, out=os.path.join(run_dir, "eval"), log=lambda msg: None)
+                            write_json(path, report)
+                except RunLockedError as e:
+                    print(f"[metaworld] skipped: {e}", flush=True)
             if not os.path.exists(path):
                 missing.setdefault(task, []).append(seed)
                 continue

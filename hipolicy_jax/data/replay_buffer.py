@@ -15,10 +15,11 @@ Standard keys used by the project (others are allowed and only checked for consi
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import shutil
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 import zarr
@@ -32,6 +33,27 @@ STANDARD_KEYS: dict[str, tuple[str, int, tuple[int, ...] | None, str | None]] = 
 }
 
 _TARGET_CHUNK_BYTES = 4 * 2**20  # zarr chunks along time of about 4 MiB
+
+
+@contextlib.contextmanager
+def collection_lock(path: str, who: str = "data") -> Iterator[None]:
+    """Hold ``<dir>/.<name>.lock`` while this process makes the dataset at ``path``: processes that need the same
+    missing dataset (a campaign's shards) make it once; the others wait here (saying so, prefixed ``[who]``) and
+    then find it made. The caller checks ``os.path.exists(path)`` inside the block."""
+    from filelock import FileLock, Timeout
+
+    parent = os.path.dirname(os.path.abspath(path))
+    os.makedirs(parent, exist_ok=True)
+    lock = FileLock(os.path.join(parent, f".{os.path.basename(path)}.lock"))
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
+        print(f"[{who}] waiting for another process collecting {path} (lock {lock.lock_file})", flush=True)
+        lock.acquire()
+    try:
+        yield
+    finally:
+        lock.release()
 
 
 def expected_layout(key: str) -> str:

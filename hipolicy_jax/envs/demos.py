@@ -19,7 +19,7 @@ import numpy as np
 
 from hipolicy_jax import envs as envs_lib
 from hipolicy_jax.config import EncoderConfig
-from hipolicy_jax.data.replay_buffer import ReplayBuffer
+from hipolicy_jax.data.replay_buffer import ReplayBuffer, collection_lock
 
 
 class ExpertTrace(NamedTuple):
@@ -151,17 +151,7 @@ def load_or_collect(task: str, encoder: EncoderConfig, episodes: int, path: str,
     import glob
     import shutil
 
-    from filelock import FileLock, Timeout
-
-    parent = os.path.dirname(os.path.abspath(path))
-    os.makedirs(parent, exist_ok=True)
-    lock = FileLock(os.path.join(parent, f".{os.path.basename(path)}.lock"))
-    try:
-        lock.acquire(timeout=0)
-    except Timeout:
-        print(f"waiting for another process collecting {path} (lock {lock.lock_file})", flush=True)
-        lock.acquire()
-    try:
+    with collection_lock(path, "demos"):
         if os.path.exists(path):
             buffer = ReplayBuffer.load(path)
             check_buffer(buffer, encoder, path)
@@ -177,5 +167,3 @@ def load_or_collect(task: str, encoder: EncoderConfig, episodes: int, path: str,
         buffer.save(partial)
         os.replace(partial, path)
         return buffer
-    finally:
-        lock.release()
