@@ -90,6 +90,22 @@ def test_mcnemar_by_hand(b, c, p):
     assert stats.mcnemar_exact(a_out, b_out) == (b, c, pytest.approx(p))
 
 
+def test_mcnemar_at_campaign_scale():
+    """Pooled cells have thousands of episodes: 1,800 discordant pairs (6 tasks x 3 seeds x 100 episodes, 700 one
+    way) give scipy's exact binomial p (a float 2 ** n overflowed past 1,023 pairs), and a p below the smallest float
+    is 0.0, which the tables print as '<1e-300', never as a p of 0."""
+    from scipy.stats import binomtest
+
+    from hipolicy_jax.campaigns.report import p_text
+
+    a_out = {s: np.r_[np.ones(100 if s < 7 else 0), np.zeros(100 if s >= 7 else 0)] for s in range(18)}
+    b_out = {s: 1.0 - a for s, a in a_out.items()}
+    only_a, only_b, p = stats.mcnemar_exact(a_out, b_out)
+    assert (only_a, only_b) == (700, 1100)
+    assert p == pytest.approx(binomtest(700, 1800, 0.5).pvalue, rel=1e-9) and 0 < p < 1e-20
+    *_, tiny = stats.mcnemar_exact({0: np.ones(2000)}, {0: np.zeros(2000)})
+    assert tiny == 0.0 and p_text(tiny) == "<1e-300" and p_text(p) == f"{p:.2g}" and p_text(math.nan) == "–"
+
 def test_sign_flip_p_by_hand():
     """Three positive seed differences of one task: only all-plus and all-minus reach |mean|, so p = 2/8; two tasks
     of (1, 2) and (3,): the statistic is (1.5 + 3)/2 and only the 2 patterns flipping all signs together (and none)

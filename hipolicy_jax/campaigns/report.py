@@ -180,7 +180,11 @@ def finding_text(c: Paired) -> str:
 
 
 def p_text(p: float) -> str:
-    return "–" if not np.isfinite(p) else f"{p:.2g}"
+    """A p-value to 2 significant digits; '–' for NaN (no test); '<1e-300' for 0.0, a p that underflowed a float
+    (an exact test's p is never 0)."""
+    if not np.isfinite(p):
+        return "–"
+    return "<1e-300" if p == 0.0 else f"{p:.2g}"
 
 
 def paired_cell(records: list[dict], seeds, tasks, new: str, base: str) -> str:
