@@ -370,8 +370,9 @@ def _metaworld_runs(task: str, variant: str) -> dict[int, dict]:
     """Per seed, the run's main evaluation (100 episodes, whole chunks, guided when the policy has strides)."""
     out = {}
     for seed in SEEDS:
-        path = os.path.join(ROOT, "results", "runs", "metaworld", "metaworld_" + task.split(":")[1], "state",
-                            variant, f"seed{seed}.json")
+        suite, _, name = task.partition(":")
+        path = os.path.join(ROOT, "results", "runs", "metaworld", f"{suite}_{name}", "state", variant,
+                            f"seed{seed}.json")
         if not os.path.exists(path):
             continue
         with open(path) as f:
@@ -428,3 +429,39 @@ def test_metaworld_table_recomputes_from_the_records():
                     f"{task} DP+HiPolicy − DP")
         checked += 1
     assert checked, "the Meta-World table has no recorded cell"
+
+
+METAWORLD_TARGET = os.path.join(ROOT, "results", "metaworld", "target", "main.md")
+
+
+def test_metaworld_target_secondary_comparison_recomputes_from_the_records():
+    """Amendment 1's secondary comparison: each task's DP on absolute targets − DP on displacements (the main
+    campaign's DP of the same task), paired on the shared initial states, from the two campaigns' run records."""
+    if not os.path.exists(METAWORLD_TARGET):
+        pytest.skip("no committed table of amendment 1 yet")
+    with open(METAWORLD_TARGET) as f:
+        text = f.read()
+    steps, variants = _metaworld_columns(text)
+    rows = _tables(text)["Amendment 1, secondary: DP on absolute targets against DP on displacements"]
+    checked = 0
+    for row in rows:
+        if not row[0].startswith("metaworld-target:"):
+            continue
+        target = _metaworld_runs(row[0], variants["DP"])
+        displaced = _metaworld_runs("metaworld:" + row[0].partition(":")[2], variants["DP"])
+        assert displaced, f"{row[0]}: the main campaign holds no DP record of this task"
+        for runs, cell in ((displaced, row[1]), (target, row[2])):
+            rates = [np.asarray(e["success"], float) for e in runs.values()]
+            if not rates:
+                assert cell == "–", (row[0], cell)
+                continue
+            _close(_parse(cell)[0], 100 * _seed_level(rates, lo_hi=(0.0, 1.0))[0], f"{row[0]} {cell}")
+        shared = sorted(set(target) & set(displaced))
+        diffs = [np.asarray(target[s]["success"], float) - np.asarray(displaced[s]["success"], float)
+                 for s in shared]
+        cell = row[3]
+        verdict = _parse(cell)[4] if cell != "–" else None
+        _check_cell(cell.split(", p=")[0] + (f" {verdict}" if verdict else ""), diffs or None,
+                    f"{row[0]} DP on targets − DP on displacements")
+        checked += 1
+    assert checked, "the amendment's table has no task row"

@@ -599,6 +599,38 @@ def test_the_plan_states_what_is_left_and_what_was_spent(tmp_path):
     assert "| metaworld:basketball | DP | 0 |" not in text  # recorded: not pending
 
 
+def test_amendment_section_pairs_targets_with_displacements_and_counts_steps_saved():
+    """Amendment 1's secondary comparisons from table records: DP on targets − DP on displacements per seed on the
+    shared initial states, and the steps DP+HiPolicy saves against DP over the episodes both succeeded in
+    (closed-form numbers); a task without records prints '–'."""
+    from hipolicy_jax.campaigns.metaworld import DISPLACEMENTS, MainArgs, amendment_section, displacement_records
+
+    def rec(task, column, seed, success, steps):
+        return {"task": task, "column": column, "seed": seed, "success": success, "steps": steps,
+                "success_rate": float(np.mean(success))}
+
+    t, other = "metaworld-target:assembly", "metaworld-target:hammer"
+    args = MainArgs(tasks=(t, other), seeds=(0, 1))
+    displaced = [rec(t, DISPLACEMENTS, 0, [1, 0, 0, 1], [90, 200, 200, 90]),
+                 rec(t, DISPLACEMENTS, 1, [0, 0, 1, 1], [200, 200, 90, 90])]
+    records = [rec(t, "DP", 0, [1, 1, 1, 1], [100, 100, 80, 90]), rec(t, "DP", 1, [1, 0, 1, 1], [60, 200, 80, 90]),
+               rec(t, "DP+HiPolicy", 0, [1, 1, 1, 0], [50, 50, 40, 200]),
+               rec(t, "DP+HiPolicy", 1, [1, 0, 1, 1], [30, 200, 40, 60])]
+    text = amendment_section(args, records, displaced, [("hard", [t]), ("medium", [other])])
+    first, second = text.split("## Amendment 1, secondary: steps to success")
+    row = first.split(f"| {t} | ")[1].split("\n")[0].split(" | ")
+    assert row[0].startswith("50.0") and row[1].startswith("87.5 [")  # 2/4 and 2/4 on displacements; 4/4 and 3/4 on targets
+    assert row[2].startswith("+37.5 [")  # per seed (0 + 1 + 1 + 0) / 4 and (1 + 0 + 0 + 0) / 4
+    assert first.split(f"| {other} | ")[1].split("\n")[0].strip(" |").split(" | ") == ["–", "–", "–"]
+    cells = second.split(f"| {t} | ")[1].split("\n")[0].split(" | ")
+    # seed 0: both succeed in episodes 0-2, DP's mean 280 / 3 steps, DP+HiPolicy saves 140 / 3: 50 %; seed 1:
+    # episodes 0, 2, 3, DP's mean 230 / 3, saved 100 / 3: 43.48 %; mean 46.7 %
+    assert cells[0] == row[1] and cells[1].startswith("75.0") and cells[2].startswith("-12.5 [")
+    assert cells[-1].startswith("+46.7 [") and "p=" in cells[-1]
+    assert second.split(f"| {other} | ")[1].split("\n")[0].strip(" |").split(" | ")[-1] == "–"
+    assert displacement_records(MainArgs(tasks=("assembly",))) is None  # a table on displacements has none
+
+
 def test_main_table_rewrites_its_readme_section_only(tmp_path):
     """``main`` ends by copying its table into the README between its own markers (one pair per ``--results``), under
     a line counting the recorded runs; another table's markers and the README's other text stay as they are, and a

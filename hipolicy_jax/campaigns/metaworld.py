@@ -390,9 +390,58 @@ def main_table(args: MainArgs) -> str:
                 f"The gaps: our column's mean over its {len(args.seeds)} seeds minus the published mean, once every "
                 "seed is recorded; our DP reads the 39-D state, the published DP images.\n\n"
                 + metric_table + "\n")
+    displaced = displacement_records(args)
+    if displaced is not None:
+        with open(md, "a") as f:
+            f.write(amendment_section(args, records, displaced, groups))
     if args.readme:
         write_readme_section(args, md, len(records), len(jobs))
     return md
+
+
+TARGET_SUITE = "metaworld-target"  # amendment 1: absolute hand targets (``envs.external``)
+DISPLACEMENTS = "DP (displacements)"  # the main table's DP on the same task, relabelled beside DP on targets
+
+
+def displacement_records(args: MainArgs) -> list[dict] | None:
+    """For a table on absolute targets (amendment 1): the main campaign's recorded DP evaluations of the same tasks
+    on displacements, each relabelled as the target task's ``DISPLACEMENTS`` column; None for any other table."""
+    targets = [t for t in args.tasks if t.partition(":")[0] == TARGET_SUITE]
+    if not targets:
+        return None
+    bare = dataclasses.replace(args, tasks=tuple(f"metaworld:{t.partition(':')[2]}" for t in targets),
+                               from_records=True, pointcloud_tasks=())
+    reader, out = campaign(bare), []
+    for task, col, seed, changes in main_jobs(bare):
+        ev = reader.evaluate(task, col, seed, dict(changes)) if col.label == "DP" else None
+        if ev is not None:
+            rec = table_record(reader, task, col, seed, dict(changes), ev)
+            out.append({**rec, "task": f"{TARGET_SUITE}:{task.partition(':')[2]}", "column": DISPLACEMENTS})
+    return out
+
+
+def amendment_section(args: MainArgs, records: list[dict], displaced: list[dict],
+                      groups: list[tuple[str, list[str]]]) -> str:
+    """Amendment 1's secondary comparisons (``results/metaworld/PROTOCOL.md``) as markdown: DP on targets against
+    DP on displacements (``displaced``: ``displacement_records``) on the same initial states, and steps to success
+    of DP+HiPolicy against DP on targets."""
+    from hipolicy_jax.campaigns.tables import speed_rows
+
+    both = records + displaced
+    rows = grouped_rows(args, both, [DISPLACEMENTS, "DP"], paired=[("DP", DISPLACEMENTS)], groups=groups)
+    speed = speed_rows(args, records, args.seeds, [t for _, ts in groups for t in ts], new="DP+HiPolicy", base="DP")
+    return ("\n## Amendment 1, secondary: DP on absolute targets against DP on displacements\n\n"
+            "The same demos, seeds and initial states; DP (displacements) is the main table's DP "
+            "(`results/metaworld/main.md`, its records in `results/runs/metaworld/metaworld_<task>/`). Paired as "
+            "the main table pairs its columns.\n\n"
+            + markdown_table(["Task", "DP on displacements (%)", "DP on targets (%)",
+                              "DP on targets − DP on displacements (points)"], rows)
+            + "\n\n## Amendment 1, secondary: steps to success, DP+HiPolicy against DP (targets)\n\n"
+            "Two networks per seed on the same initial states. Steps saved: per seed, 100 · mean(DP − "
+            "DP+HiPolicy) / mean(DP) over the episodes both succeeded in; mean over seeds with its t interval and "
+            "p.\n\n"
+            + markdown_table(["Task", "DP SR (%)", "DP+HiPolicy SR (%)", "Success cost (points)", "DP steps",
+                              "DP+HiPolicy steps", "Steps saved (%)"], speed) + "\n")
 
 
 # ---------------------------------------------------------------------------------------------- diagnose

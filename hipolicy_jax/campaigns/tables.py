@@ -773,24 +773,28 @@ def saved_groups(records: list[dict], seeds, task: str, new: str, base: str) -> 
     return groups
 
 
-def speed_rows(args: PaperArgs, records: list[dict], seeds, tasks) -> list[list[str]]:
-    """The paper's speed claim, same network (HiPolicy vs w/o EG), per task and on average: success of each, the
-    success cost, steps to success of each, the steps saved (%) with its interval over seeds."""
+def speed_rows(args: PaperArgs, records: list[dict], seeds, tasks, new: str = "HiPolicy",
+               base: str = "w/o EG") -> list[list[str]]:
+    """The paper's speed claim, per task and on average: success of ``base`` and ``new``, the success cost, steps
+    to success of each, the steps ``new`` saves (%) with its interval over seeds. By default the same network
+    (HiPolicy vs w/o EG); with other columns, two networks per seed on the same initial states."""
     rows = []
     for label, ts in [(t, [t]) for t in tasks] + ([("**Average**", list(tasks))] if len(tasks) > 1 else []):
-        cost = paired(records, seeds, ts, "HiPolicy", "w/o EG")
-        groups = [saved_groups(records, seeds, t, "HiPolicy", "w/o EG") for t in ts]
+        cost = paired(records, seeds, ts, new, base)
+        groups = [saved_groups(records, seeds, t, new, base) for t in ts]
         saved = (stats.NAN if not all(groups) else stats.seed_mean(groups[0]) if len(ts) == 1
                  else stats.average(groups))
+        saved_text = "–" if not np.isfinite(saved.mean) else (
+            f"{interval_text(saved, 100.0, signed=True)}, p={p_text(saved.p)}"
+            + (f" ({'faster' if saved.low > 0 else 'slower' if saved.high < 0 else 'no difference'})"
+               if np.isfinite(saved.low) else ""))
         rows.append([label,
-                     ci(records, "success_rate", seeds, ts, 100.0, column="w/o EG"),
-                     ci(records, "success_rate", seeds, ts, 100.0, column="HiPolicy"),
+                     ci(records, "success_rate", seeds, ts, 100.0, column=base),
+                     ci(records, "success_rate", seeds, ts, 100.0, column=new),
                      "–" if cost is None else f"{interval_text(cost.diff, 100.0, signed=True)} ({verdict_text(cost)})",
-                     ci(records, "mean_steps_success", seeds, ts, column="w/o EG"),
-                     ci(records, "mean_steps_success", seeds, ts, column="HiPolicy"),
-                     f"{interval_text(saved, 100.0, signed=True)}, p={p_text(saved.p)}"
-                     + (f" ({'faster' if saved.low > 0 else 'slower' if saved.high < 0 else 'no difference'})"
-                        if np.isfinite(saved.low) else "")])
+                     ci(records, "mean_steps_success", seeds, ts, column=base),
+                     ci(records, "mean_steps_success", seeds, ts, column=new),
+                     saved_text])
     return rows
 
 
