@@ -27,7 +27,8 @@ from hipolicy_jax.campaigns.campaign import (EXTERNAL_EVAL_SEED, Column, CostMod
                                              update_readme, work_off)
 from hipolicy_jax.campaigns.report import markdown_table, spent_measured_text
 from hipolicy_jax.campaigns.tables import (PAIRED_NOTE, PaperArgs, table_record, campaign, demo_steps,
-                                           eval_episodes, grouped_rows, success_by_task_figure, write_results)
+                                           eval_episodes, grouped_rows, speed_rows, success_by_task_figure,
+                                           write_results)
 from hipolicy_jax.runs.store import read_json, write_json
 from hipolicy_jax.runs.lock import CAMPAIGN_LOCK_FILE, RunLock, RunLockedError
 
@@ -425,8 +426,6 @@ def amendment_section(args: MainArgs, records: list[dict], displaced: list[dict]
     """Amendment 1's secondary comparisons (``results/metaworld/PROTOCOL.md``) as markdown: DP on targets against
     DP on displacements (``displaced``: ``displacement_records``) on the same initial states, and steps to success
     of DP+HiPolicy against DP on targets."""
-    from hipolicy_jax.campaigns.tables import speed_rows
-
     both = records + displaced
     rows = grouped_rows(args, both, [DISPLACEMENTS, "DP"], paired=[("DP", DISPLACEMENTS)], groups=groups)
     speed = speed_rows(args, records, args.seeds, [t for _, ts in groups for t in ts], new="DP+HiPolicy", base="DP")
