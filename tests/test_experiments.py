@@ -339,6 +339,30 @@ def test_budget_table_and_its_figure_of_success_and_steps(tmp_path, monkeypatch)
                   for n in (default, longer)]
     np.testing.assert_allclose(top_left[1][0], dp_success, atol=0.051)  # DP's success on press_button
     np.testing.assert_allclose(bottom_right[1][1], hip_steps, atol=0.051)  # DP+HiPolicy's steps on stack_cubes
+    answer = [line for line in text.splitlines() if line.startswith("**The answer**")]
+    assert len(answer) == 1 and "press_button: " in answer[0] and "stack_cubes: " in answer[0], text
+    for task in ("press_button", "stack_cubes"):  # each task's answer is the rule applied to its two table cells
+        first, last = (report.paired(tables.budget_records(fake, n, default), (0, 1, 2), [task], "DP+HiPolicy",
+                                     "DP") for n in (default, longer))
+        assert f"{task}: {report.interval_text(first.diff, 100.0, signed=True)} at {default:,} steps, " \
+               f"{report.interval_text(last.diff, 100.0, signed=True)} at {longer:,}: " \
+               f"**{report.gap_trend(first, last)}**" in answer[0]
+
+
+def test_gap_trend_follows_the_protocols_rule():
+    """The training-budget answer: shrinks / grows when the longest training's interval excludes the shortest's
+    point estimate (by which mean is nearer 0), else holds; '–' without a pair or without an interval."""
+    def gap(mean, low=math.nan, high=math.nan):
+        return report.Paired(report.stats.Estimate(mean, low, high), math.nan, math.nan, ())
+
+    before = gap(-0.227, -0.278, -0.175)
+    assert report.gap_trend(before, gap(0.0, 0.0, 0.0)) == "shrinks"  # 0 ± 0 excludes −22.7
+    assert report.gap_trend(before, gap(-0.20, -0.30, -0.10)) == "holds"  # contains −22.7
+    assert report.gap_trend(before, gap(-0.40, -0.45, -0.35)) == "grows"  # excludes it, farther from 0
+    assert report.gap_trend(gap(0.217, -0.056, 0.489), gap(-0.35, -0.40, -0.30)) == "grows"  # reversed, larger
+    assert report.gap_trend(gap(0.217, -0.056, 0.489), gap(0.10, 0.05, 0.15)) == "shrinks"
+    assert report.gap_trend(before, gap(0.0)) == "–"  # one seed at the longest training: no interval
+    assert report.gap_trend(None, gap(0.0, 0.0, 0.0)) == report.gap_trend(before, None) == "–"
 
 
 def test_paper_tables_on_fake_numbers(tmp_path, monkeypatch):

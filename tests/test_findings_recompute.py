@@ -293,7 +293,9 @@ def test_training_budget_rows_recompute_from_the_records(findings):
     title = [t for t in findings if t.startswith("Training budget")]
     if not title:
         pytest.skip("no budget rows yet")
-    for row in findings[title[0]]:
+    rows = findings[title[0]]
+    estimates = {}  # (steps, task): the seed-level estimate the cell recomputes to
+    for row in rows[:-1]:
         steps = int(row[0].split()[0].replace(",", ""))
         suffix = "" if steps == 2000 else f"_t{steps}"
         for task, cell in zip(TASKS, row[1:]):
@@ -301,7 +303,20 @@ def test_training_budget_rows_recompute_from_the_records(findings):
             if task in ("latch_door", "pick_place"):  # the budget study's tasks are press_button and stack_cubes
                 assert cell == "–", (steps, task, cell)
                 continue
-            _check_cell(cell, _success_diffs(pairs) if pairs else None, f"budget {steps}, {task}")
+            estimates[steps, task] = _check_cell(cell, _success_diffs(pairs) if pairs else None,
+                                                 f"budget {steps}, {task}")
+    # the last row answers the protocol's question per task: the gap shrinks / grows when the longest training's
+    # t interval excludes the 2,000-step point estimate (by which mean is nearer 0), else it holds
+    answer = rows[-1]
+    assert answer[0] == "Gap 2,000 → 24,000 steps (protocol's rule)", answer
+    for task, cell in zip(TASKS, answer[1:]):
+        first, last = estimates.get((2000, task)), estimates.get((24000, task))
+        if first is None or last is None or not math.isfinite(last[1]):
+            assert cell == "–", (task, cell)
+            continue
+        want = ("holds" if last[1] <= first[0] <= last[2]
+                else "shrinks" if abs(last[0]) < abs(first[0]) else "grows")
+        assert cell == want, (task, cell, want)
 
 
 def _bootstrap(per_task: list[list[np.ndarray]], resamples: int = 10_000, seed: int = 12345):

@@ -199,6 +199,18 @@ def paired_cell(records: list[dict], seeds, tasks, new: str, base: str) -> str:
     return f"{interval_text(c.diff, 100.0, signed=True)}, p={p_text(c.p)} ({verdict_text(c)})"
 
 
+def gap_trend(first: Paired | None, last: Paired | None) -> str:
+    """Whether a paired gap 'shrinks', 'grows' or 'holds' from ``first`` (e.g. the budget's training length) to
+    ``last`` (the longest), by the rule ``results/PROTOCOL.md`` fixed before the training-budget runs: it shrinks or
+    grows when ``last``'s t interval over seeds excludes ``first``'s point estimate (by whether ``last``'s mean is
+    nearer 0 than ``first``'s), else it holds; '–' while either has no pair or ``last`` has no interval (1 seed)."""
+    if first is None or last is None or not (np.isfinite(last.diff.low) and np.isfinite(last.diff.high)):
+        return "–"
+    if last.diff.low <= first.diff.mean <= last.diff.high:
+        return "holds"
+    return "shrinks" if abs(last.diff.mean) < abs(first.diff.mean) else "grows"
+
+
 def leave_one_out(records: list[dict], seeds, tasks, new: str, base: str, scale: float = 100.0,
                   metric: str = "success_rate") -> str:
     """The pooled comparison without each task in turn: 'w/o press_button +2.7 [lo, hi]; w/o ...'."""

@@ -27,7 +27,8 @@ from hipolicy_jax.campaigns.campaign import (README_BEGIN, README_END, Campaign,
                                         shard, update_readme)
 from hipolicy_jax.runs.lock import RunLockedError
 from hipolicy_jax.campaigns.report import (COUNT_BOUNDS, RATE_BOUNDS, bar_figure, changes_text, ci, cost_note,
-                                           finding_text, interval_text, leave_one_out, markdown_table, outcomes,
+                                           finding_text, gap_trend, interval_text, leave_one_out, markdown_table,
+                                           outcomes,
                                            p_text, paired, paired_bootstrap, paired_cell, relative_gain,
                                            spent_measured_text, stride_cell, task_mean, verdict_text)
 from hipolicy_jax.runs.store import read_json, write_json
@@ -489,6 +490,28 @@ def budget_records(records: list[dict], steps: int, default: int) -> list[dict]:
     return [r for r in records if (r.get("regime") or {}) == want]
 
 
+def budget_gaps(records: list[dict], seeds, task: str, steps, default: int) -> tuple[str, str, str]:
+    """(the gap DP+HiPolicy − DP at the fewest steps, at the most, and the protocol's answer: 'shrinks' / 'holds' /
+    'grows', ``report.gap_trend``) for one task of the training-budget table; '–' where a step count has no pair."""
+    lo, hi = min(steps), max(steps)
+    first, last = (paired(budget_records(records, n, default), seeds, [task], "DP+HiPolicy", "DP") for n in (lo, hi))
+    text = [("–" if c is None else interval_text(c.diff, 100.0, signed=True)) for c in (first, last)]
+    return text[0], text[1], gap_trend(first, last)
+
+
+def budget_answer(args: BudgetArgs, records: list[dict]) -> str:
+    """The budget table's answer per task, by the rule the protocol fixed before the runs."""
+    default, seeds = BUDGETS[args.budget].train.num_steps, table_seeds(args)
+    lo, hi = min(args.steps), max(args.steps)
+    parts = []
+    for task in args.tasks:
+        a, b, trend = budget_gaps(records, seeds, task, args.steps, default)
+        parts.append(f"{task}: {a} at {lo:,} steps, {b} at {hi:,}: **{trend}**")
+    return (f"**The answer** (`results/PROTOCOL.md`'s rule, fixed before the runs: the gap shrinks or grows when "
+            f"its t interval at {hi:,} steps excludes the {lo:,}-step point estimate, else it holds; '–' while "
+            f"{hi:,} steps have fewer than 2 paired seeds): " + "; ".join(parts) + ".")
+
+
 def budget_table(args: BudgetArgs) -> str:
     """Success of DP and DP+HiPolicy vs training steps, the paired difference per step count, and a plot."""
     records = collect(args, list(BUDGET_COLUMNS))
@@ -504,6 +527,7 @@ def budget_table(args: BudgetArgs) -> str:
                          paired_cell(rs, seeds, [task], "DP+HiPolicy", "DP")])
     header = ["Task", "Training steps", "DP SR (%)", "DP+HiPolicy SR (%)", "DP steps", "DP+HiPolicy steps",
               "DP+HiPolicy − DP (points)"]
+    table = markdown_table(header, rows) + "\n\n" + budget_answer(args, records)
     notes = ["Does the gap between DP+HiPolicy and DP shrink, hold or grow with training? The same CPU network and "
              "batch as the budget, trained for more steps (the learning-rate schedule stretched to the step "
              "count); 100 demos; entropy-guided execution with per-run calibrated thresholds.",
@@ -551,8 +575,7 @@ def budget_table(args: BudgetArgs) -> str:
         plt.close(fig)
         return path
 
-    return write_results(args, "Training-budget sensitivity: DP vs DP+HiPolicy", notes, markdown_table(header, rows),
-                         records, figure)
+    return write_results(args, "Training-budget sensitivity: DP vs DP+HiPolicy", notes, table, records, figure)
 
 
 def thresholds_columns(args: ThresholdsArgs) -> list[Column]:
@@ -855,6 +878,9 @@ def findings_table(args: "CampaignArgs", tables: list[PaperArgs]) -> str | None:
                     c = paired(rs, seeds, [task], "DP+HiPolicy", "DP") if task in t.tasks else None
                     cells.append("–" if c is None else finding_text(c))
                 budget_rows.append([f"{n:,} steps", *cells])
+            budget_rows.append([f"Gap {min(t.steps):,} → {max(t.steps):,} steps (protocol's rule)",
+                                *(budget_gaps(records, seeds, task, t.steps, default)[2] if task in t.tasks else "–"
+                                  for task in args.tasks)])
             continue
         for name, new, base in FINDINGS:
             if name != table_name(t) or not {new, base} <= labels:  # (DP3 columns: in R100's main table only)
