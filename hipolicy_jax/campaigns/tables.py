@@ -28,8 +28,7 @@ from hipolicy_jax.campaigns.campaign import (README_BEGIN, README_END, Campaign,
 from hipolicy_jax.runs.lock import RunLockedError
 from hipolicy_jax.campaigns.report import (COUNT_BOUNDS, RATE_BOUNDS, bar_figure, changes_text, ci, cost_note,
                                            finding_text, gap_trend, interval_text, leave_one_out, markdown_table,
-                                           outcomes,
-                                           p_text, paired, paired_bootstrap, paired_cell, relative_gain,
+                                           outcomes, p_text, paired, paired_bootstrap, paired_cell, relative_gain,
                                            spent_measured_text, stride_cell, task_mean, verdict_text)
 from hipolicy_jax.runs.store import read_json, write_json
 from hipolicy_jax.runs.train import RunConfig, cpu_cores
