@@ -310,6 +310,22 @@ def test_batch_indices_resumable_and_cover_each_epoch_once():
     assert len(np.unique(epoch0_b9)) == 45
 
 
+def test_steps_at_bound_is_each_episodes_path_length_in_the_max_norm():
+    """Σ_t max_i |a[t, i]| over the xyz channels, per episode (the gripper channel ignored), in units of the bound:
+    closed-form sums, episodes never mixed, a bad ``episode_ends`` named."""
+    from hipolicy_jax.data.windowing import steps_at_bound
+
+    a = np.zeros((7, 4))
+    a[:3, :3] = [[1.0, -0.5, 0.0], [0.2, 0.3, -0.4], [0.0, 0.0, 0.0]]  # episode 1: 1 + 0.4 + 0
+    a[3:, :3] = [[-1.0, 1.0, 1.0], [0.5, 0.5, 0.5], [0.1, 0.0, 0.0], [0.0, 0.0, -0.9]]  # 1 + 0.5 + 0.1 + 0.9
+    a[:, 3] = 1.0  # the gripper moves every step: not a displacement channel
+    np.testing.assert_allclose(steps_at_bound(a, np.array([3, 7])), [1.4, 2.5])
+    np.testing.assert_allclose(steps_at_bound(a, np.array([3, 7]), bound=0.5), [2.8, 5.0])
+    np.testing.assert_allclose(steps_at_bound(a, np.array([7])), [3.9])
+    with pytest.raises(ValueError, match="episode_ends"):
+        steps_at_bound(a, np.array([3, 8]))
+
+
 def test_delta_segment_coverage_closed_form():
     """A stride-s segment of displacement actions moves 1/s of the demo's way at constant speed; on a ramp
     a_i = i the ratio is Σ_k (f+ks) / Σ_{i<sL} (f+i); windows never cross an episode end; still windows drop."""

@@ -538,7 +538,7 @@ def test_metaworld_campaign_end_to_end(tmp_path, monkeypatch, capsys):
 
 def test_demo_coverage_of_displacement_demos(tmp_path):
     """The diagnosis's demo summary: at constant speed a stride-s segment covers 1/s of the demo's move; the share of
-    xyz entries at the action bound is counted per entry."""
+    xyz entries at the action bound is counted per entry; a demo moving at the bound every step can go no faster."""
     from hipolicy_jax.campaigns.metaworld import demo_coverage
     from hipolicy_jax.config import ChunkConfig
 
@@ -552,6 +552,7 @@ def test_demo_coverage_of_displacement_demos(tmp_path):
         assert row["windows"] == (40 - 8 * s) + (50 - 8 * s)
         assert row["median"] == pytest.approx(1 / s) and row["quartiles"] == pytest.approx([1 / s, 1 / s])
     assert cov["saturated_xyz"] == pytest.approx(1 / 3)  # x at +1; y at 0.5, z at 0
+    assert cov["mean_steps"] == 45.0 and cov["mean_steps_at_bound"] == pytest.approx(45.0)  # x at the bound throughout
 
 
 def test_metaworld_budget_rules_by_hand():
@@ -599,10 +600,12 @@ def test_the_plan_states_what_is_left_and_what_was_spent(tmp_path):
     assert "| metaworld:basketball | DP | 0 |" not in text  # recorded: not pending
 
 
-def test_amendment_section_pairs_targets_with_displacements_and_counts_steps_saved():
+def test_amendment_section_pairs_targets_with_displacements_and_counts_steps_saved(tmp_path):
     """Amendment 1's secondary comparisons from table records: DP on targets − DP on displacements per seed on the
     shared initial states, and the steps DP+HiPolicy saves against DP over the episodes both succeeded in
-    (closed-form numbers); a task without records prints '–'."""
+    (closed-form numbers), beside the chunked expert's steps on targets and the demos' share at the action bound
+    from the diagnosis files; a task without records or files prints '–'."""
+    from hipolicy_jax.runs.store import write_json
     from hipolicy_jax.campaigns.metaworld import DISPLACEMENTS, MainArgs, amendment_section, displacement_records
 
     def rec(task, column, seed, success, steps):
@@ -616,7 +619,12 @@ def test_amendment_section_pairs_targets_with_displacements_and_counts_steps_sav
     records = [rec(t, "DP", 0, [1, 1, 1, 1], [100, 100, 80, 90]), rec(t, "DP", 1, [1, 0, 1, 1], [60, 200, 80, 90]),
                rec(t, "DP+HiPolicy", 0, [1, 1, 1, 0], [50, 50, 40, 200]),
                rec(t, "DP+HiPolicy", 1, [1, 0, 1, 1], [30, 200, 40, 60])]
-    text = amendment_section(args, records, displaced, [("hard", [t]), ("medium", [other])])
+    write_json(str(tmp_path / "strided_experts.json"), {"tasks": {"assembly": {
+        "delta": {"1": {"mean_steps": 90.0}},
+        "target": {"1": {"mean_steps": 89.75}, "2": {"mean_steps": 70.25}, "3": {"mean_steps": None}}}}})
+    write_json(str(tmp_path / "assembly_coverage.json"), {"saturated_xyz": 0.2, "mean_steps": 79.18,
+                                                          "mean_steps_at_bound": 61.84})
+    text = amendment_section(args, records, displaced, [("hard", [t]), ("medium", [other])], diagnosis=str(tmp_path))
     first, second = text.split("## Amendment 1, secondary: steps to success")
     row = first.split(f"| {t} | ")[1].split("\n")[0].split(" | ")
     assert row[0].startswith("50.0") and row[1].startswith("87.5 [")  # 2/4 and 2/4 on displacements; 4/4 and 3/4 on targets
@@ -626,8 +634,11 @@ def test_amendment_section_pairs_targets_with_displacements_and_counts_steps_sav
     # seed 0: both succeed in episodes 0-2, DP's mean 280 / 3 steps, DP+HiPolicy saves 140 / 3: 50 %; seed 1:
     # episodes 0, 2, 3, DP's mean 230 / 3, saved 100 / 3: 43.48 %; mean 46.7 %
     assert cells[0] == row[1] and cells[1].startswith("75.0") and cells[2].startswith("-12.5 [")
-    assert cells[-1].startswith("+46.7 [") and "p=" in cells[-1]
-    assert second.split(f"| {other} | ")[1].split("\n")[0].strip(" |").split(" | ")[-1] == "–"
+    assert cells[-3].startswith("+46.7 [") and "p=" in cells[-3]
+    assert cells[-2:] == ["89.8 / 70.2 / –", "79.2 / 61.8 |"]  # the target space's (none succeeded at stride 3)
+    assert second.split(f"| {other} | ")[1].split("\n")[0].strip(" |").split(" | ")[-3:] == ["–", "–", "–"]
+    average = second.split("| **Average** | ")[1].split("\n")[0]
+    assert [c.strip() for c in average.split("|")][-3:] == ["", "", ""]  # per task only
     assert displacement_records(MainArgs(tasks=("assembly",))) is None  # a table on displacements has none
 
 

@@ -33,6 +33,7 @@ from hipolicy_jax.runs.store import read_json, write_json
 from hipolicy_jax.runs.lock import CAMPAIGN_LOCK_FILE, RunLock, RunLockedError
 
 PROTOCOL_FILE = "results/metaworld/PROTOCOL.md"
+DIAGNOSIS = "results/metaworld/diagnosis"  # the post hoc diagnosis's files (``DiagnoseArgs.results``)
 # The protocol's tasks in its order (round robin over DP3's groups), with their DP3 group.
 TASKS: tuple[tuple[str, str], ...] = (
     ("basketball", "medium"), ("assembly", "hard"), ("shelf-place", "very hard"), ("bin-picking", "medium"),
@@ -144,7 +145,7 @@ class DiagnoseArgs(MetaWorldArgs):
     its seed's initial states, beside DP and the guided evaluation → ``results/metaworld/diagnosis/``."""
 
     TABLE: ClassVar[str] = "diagnose"
-    results: str = "results/metaworld/diagnosis"
+    results: str = DIAGNOSIS
     steps: int | None = None  # training steps T of the runs (default: the pilot's, as ``main``)
 
     def default_tasks(self) -> tuple[str, ...]:
@@ -422,13 +423,25 @@ def displacement_records(args: MainArgs) -> list[dict] | None:
 
 
 def amendment_section(args: MainArgs, records: list[dict], displaced: list[dict],
-                      groups: list[tuple[str, list[str]]]) -> str:
+                      groups: list[tuple[str, list[str]]], diagnosis: str = DIAGNOSIS) -> str:
     """Amendment 1's secondary comparisons (``results/metaworld/PROTOCOL.md``) as markdown: DP on targets against
     DP on displacements (``displaced``: ``displacement_records``) on the same initial states, and steps to success
-    of DP+HiPolicy against DP on targets."""
+    of DP+HiPolicy against DP on targets, beside what striding gives the task's own scripted expert on targets and
+    how often its demos already move the hand at the action bound (the diagnosis files in ``diagnosis``: '–' where
+    they are missing)."""
     both = records + displaced
     rows = grouped_rows(args, both, [DISPLACEMENTS, "DP"], paired=[("DP", DISPLACEMENTS)], groups=groups)
-    speed = speed_rows(args, records, args.seeds, [t for _, ts in groups for t in ts], new="DP+HiPolicy", base="DP")
+    tasks = [t for _, ts in groups for t in ts]
+    speed = speed_rows(args, records, args.seeds, tasks, new="DP+HiPolicy", base="DP")
+    experts, coverage = strided_experts(diagnosis), demo_coverages(diagnosis, tasks)
+    for row in speed:  # per task only: the average row gets blanks
+        task = row[0] if row[0] in tasks else None
+        by_stride = experts.get(task.partition(":")[2], {}).get("target", {}) if task else {}
+        row += ["" if task is None else " / ".join(
+                    f"{by_stride[s]['mean_steps']:.1f}" if by_stride.get(s, {}).get("mean_steps") is not None
+                    else "–" for s in ("1", "2", "3")) if by_stride else "–",
+                "" if task is None else f"{coverage[task]['mean_steps']:.1f} / {coverage[task]['mean_steps_at_bound']:.1f}"
+                if "mean_steps_at_bound" in coverage.get(task, {}) else "–"]
     return ("\n## Amendment 1, secondary: DP on absolute targets against DP on displacements\n\n"
             "The same demos, seeds and initial states; DP (displacements) is the main table's DP "
             "(`results/metaworld/main.md`, its records in `results/runs/metaworld/metaworld_<task>/`). Paired as "
@@ -438,9 +451,18 @@ def amendment_section(args: MainArgs, records: list[dict], displaced: list[dict]
             + "\n\n## Amendment 1, secondary: steps to success, DP+HiPolicy against DP (targets)\n\n"
             "Two networks per seed on the same initial states. Steps saved: per seed, 100 · mean(DP − "
             "DP+HiPolicy) / mean(DP) over the episodes both succeeded in; mean over seeds with its t interval and "
-            "p.\n\n"
+            "p. What striding can give here, from the post hoc diagnosis (`results/metaworld/diagnosis/`, not part "
+            "of the protocol): *Expert chunked on targets*, the scripted expert's mean steps to success executed as "
+            "a chunking policy on absolute targets at stride 1 / 2 / 3 (every s-th of its planned targets, 8 per "
+            f"chunk, closed loop; `{STRIDED_EXPERTS}`); *Demo steps / at the bound*, the demos' mean length and the "
+            "fewest steps in which the hand could trace their paths when every step moved its target the most "
+            "the env allows (1 cm per axis: Σ_t max_i |a[t, i]| over the xyz displacements, "
+            "`data.windowing.steps_at_bound`; `<task>_coverage.json`; a step that pushes the target against the "
+            "workspace's edge counts as a move, so where the hand works at that edge the bound is loose), a bound on "
+            "what any stride can save.\n\n"
             + markdown_table(["Task", "DP SR (%)", "DP+HiPolicy SR (%)", "Success cost (points)", "DP steps",
-                              "DP+HiPolicy steps", "Steps saved (%)"], speed) + "\n")
+                              "DP+HiPolicy steps", "Steps saved (%)", "Expert chunked on targets: steps at stride "
+                              "1 / 2 / 3", "Demo steps / at the bound"], speed) + "\n")
 
 
 # ---------------------------------------------------------------------------------------------- diagnose
@@ -452,20 +474,42 @@ STRIDED_EXPERTS_COMMAND = (".venv-metaworld/bin/python -m metaworld_bridge.check
                            f"results/metaworld/diagnosis/{STRIDED_EXPERTS}")
 
 
+def strided_experts(results: str) -> dict:
+    """``<results>/strided_experts.json``'s per-task entries ({task: {action space: {stride: summary}}}, bare task
+    names); empty when the file is missing."""
+    path = os.path.join(results, STRIDED_EXPERTS)
+    return read_json(path).get("tasks", {}) if os.path.exists(path) else {}
+
+
+def demo_coverages(results: str, tasks) -> dict[str, dict]:
+    """{task: ``demo_coverage`` of its displacement demos} from ``<results>/<bare task>_coverage.json``, for the
+    ``tasks`` (full names) whose file exists."""
+    paths = {t: coverage_path(results, t) for t in tasks}
+    return {t: read_json(p) for t, p in paths.items() if os.path.exists(p)}
+
+
+def coverage_path(results: str, task: str) -> str:
+    """Where ``diagnose`` keeps ``demo_coverage`` of ``task``'s (full name) displacement demos."""
+    return os.path.join(results, f"{task.partition(':')[2]}_coverage.json")
+
+
 def demo_coverage(path: str, chunk) -> dict:
     """What the demos at ``path`` say about executing their strides' segments: per stride the median and quartiles
-    of ``windowing.delta_segment_coverage`` (hand xyz), and the share of xyz action entries at the action bound
-    (|a| ≥ 0.999: the expert already moves as fast as an action can)."""
+    of ``windowing.delta_segment_coverage`` (hand xyz), the share of xyz action entries at the action bound
+    (|a| ≥ 0.999: the expert already moves as fast as an action can), and the demos' mean length beside the fewest
+    steps in which actions within the bound trace their hand paths (``windowing.steps_at_bound``)."""
     from hipolicy_jax.data.replay_buffer import ReplayBuffer
-    from hipolicy_jax.data.windowing import delta_segment_coverage
+    from hipolicy_jax.data.windowing import delta_segment_coverage, steps_at_bound
 
     buffer = ReplayBuffer.load(path)
     actions = np.asarray(buffer.data["action"], np.float64)
     cov = delta_segment_coverage(actions, buffer.episode_ends, chunk)
+    fewest = steps_at_bound(actions, buffer.episode_ends)
     return {"data": os.path.relpath(path), "episodes": int(len(buffer.episode_ends)), "frames": int(len(actions)),
             "strides": {str(s): {"windows": int(v.size), "median": float(np.median(v)),
                                  "quartiles": [float(q) for q in np.percentile(v, [25, 75])]} for s, v in cov.items()},
-            "saturated_xyz": float(np.mean(np.abs(actions[:, :3]) >= 0.999))}
+            "saturated_xyz": float(np.mean(np.abs(actions[:, :3]) >= 0.999)),
+            "mean_steps": float(np.mean(buffer.episode_lengths())), "mean_steps_at_bound": float(np.mean(fewest))}
 
 
 def diagnose_table(args: DiagnoseArgs) -> str:
@@ -483,15 +527,13 @@ def diagnose_table(args: DiagnoseArgs) -> str:
     dp, hip = COLUMNS[0], COLUMNS[1]
     changes = dict(run_changes(args.budget, args.steps))
     os.makedirs(args.results, exist_ok=True)
-    records, coverage, missing = [], {}, {}
+    records, missing = [], {}
     for task in tqdm(args.tasks, desc="metaworld diagnose", unit="task", disable=not args.progress):
         bare = task.partition(":")[2]
-        path = os.path.join(args.results, f"{bare}_coverage.json")
+        path = coverage_path(args.results, task)
         cfg = camp.run_config(task, hip, args.seeds[0], changes)
         if not os.path.exists(path) and not args.from_records:
             write_json(path, demo_coverage(camp.ensure_demos(cfg, args.seeds[0]), cfg.policy.chunk))
-        if os.path.exists(path):
-            coverage[task] = read_json(path)
         for seed in args.seeds:
             evs = {col: reader.evaluate(task, col, seed, changes) for col in (dp, hip)}
             rows = {col: table_record(reader, task, col, seed, changes, ev) for col, ev in evs.items() if ev}
@@ -528,6 +570,7 @@ def diagnose_table(args: DiagnoseArgs) -> str:
                             "eval_s": 0.0 if report["reused"]["without_eg"] else None})
     labels = [dp.label, hip.label, STRIDE1]
     pairs = [(STRIDE1, dp.label), (hip.label, STRIDE1)]
+    coverage = demo_coverages(args.results, args.tasks)
 
     def cells(task: str) -> list[str]:
         cov = coverage.get(task, {}).get("strides", {})
@@ -537,8 +580,7 @@ def diagnose_table(args: DiagnoseArgs) -> str:
                 f"{100 * coverage[task]['saturated_xyz']:.0f}" if task in coverage else "–",
                 " / ".join(f"{100 * v:.0f}" for v in share) if hip_recs else "–"]
 
-    experts_path = os.path.join(args.results, STRIDED_EXPERTS)
-    experts = read_json(experts_path).get("tasks", {}) if os.path.exists(experts_path) else {}
+    experts = strided_experts(args.results)
 
     def expert_cells(task: str) -> list[str]:
         by_space = experts.get(task.partition(":")[2], {})

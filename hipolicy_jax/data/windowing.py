@@ -130,3 +130,24 @@ def delta_segment_coverage(actions: np.ndarray, episode_ends: np.ndarray, chunk:
         keep = norm2 >= min_norm ** 2
         out[s] = (executed * demo).sum(axis=1)[keep] / norm2[keep]
     return out
+
+
+def steps_at_bound(actions: np.ndarray, episode_ends: np.ndarray, dims: tuple[int, ...] = (0, 1, 2),
+                   bound: float = 1.0) -> np.ndarray:
+    """Per episode, the fewest control steps in which displacements of at most ``bound`` per channel trace its
+    demo's path: Σ_t max_i |a[t, i]| / bound over the ``dims`` channels (the path's length in the max norm). With
+    Meta-World's actions (xyz moves of the hand's target, at most 1 cm a step) it is how fast any policy, at any
+    stride, could follow the demo's hand path; steps that only move the gripper count zero, so it is a lower bound.
+
+    Args:
+      actions: ``(N, A)`` per-step displacements of every frame (ReplayBuffer layout).
+      episode_ends: ``(E,)`` cumulative episode ends.
+      dims: the displacement channels of an action.
+      bound: the largest displacement a step can make per channel.
+
+    Returns:
+      ``(E,)`` steps, fractional.
+    """
+    moves = np.abs(np.asarray(actions, np.float64)[:, list(dims)]).max(axis=1) / bound  # (N,)
+    ends = check_episode_ends(episode_ends, moves.shape[0])
+    return np.add.reduceat(moves, np.concatenate([[0], ends[:-1]]))
