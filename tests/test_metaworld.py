@@ -483,7 +483,8 @@ def test_metaworld_campaign_end_to_end(tmp_path, monkeypatch, capsys):
     # guided pass the campaign's, reused; the unguided one run through the bridge), beside DP, from its own files
     from hipolicy_jax.campaigns.metaworld import STRIDE1
 
-    diag = [str(tmp_path / "diag") if f == str(tmp_path / "res") else f for f in flags] + ["--seeds", "0"]
+    diag = [str(tmp_path / "diag") if f == str(tmp_path / "res") else f for f in flags] + [
+        "--seeds", "0", "--experts", str(tmp_path / "diag" / "strided_experts.json")]
     md = metaworld(parse_args(["diagnose", *diag]))
     cov = json.loads((tmp_path / "diag" / "assembly_coverage.json").read_text())
     assert cov["strides"]["1"]["median"] == pytest.approx(1.0) and cov["episodes"] == 6  # the smoke budget's demos
@@ -598,6 +599,25 @@ def test_the_plan_states_what_is_left_and_what_was_spent(tmp_path):
     assert "spent + left: 3.5 CPU-hours. Counted as wall time × cores, as the protocol's budget counts them: 2.5 spent." in text
     assert "| metaworld:basketball | DP+HiPolicy | 2 | yes | – |" in text
     assert "| metaworld:basketball | DP | 0 |" not in text  # recorded: not pending
+
+
+def test_diagnose_on_absolute_targets_computes_no_displacement_coverage(tmp_path):
+    """``diagnose`` on amendment 1's tasks: no segment coverage (it speaks of displacement actions; no demos are
+    collected for it), a title naming absolute targets, and the chunked expert's target column from ``--experts``."""
+    from hipolicy_jax.campaigns.metaworld import DiagnoseArgs, diagnose_table
+    from hipolicy_jax.runs.store import write_json
+
+    experts = tmp_path / "experts.json"
+    write_json(str(experts), {"tasks": {"assembly": {"target": {"1": {"success_rate": 1.0},
+                                                                "3": {"success_rate": 0.85}}}}})
+    args = DiagnoseArgs(tasks=("metaworld-target:assembly",), results=str(tmp_path / "diag"), experts=str(experts),
+                        records=str(tmp_path / "rec"), runs=str(tmp_path / "runs"), data=str(tmp_path / "data"),
+                        progress=False)
+    text = open(diagnose_table(args)).read()
+    assert text.startswith("# Meta-World diagnosis: HiPolicy's strides on absolute hand targets (post hoc)")
+    assert not list((tmp_path / "diag").glob("*_coverage.json")) and not (tmp_path / "data").exists()
+    row = text.split("| metaworld-target:assembly | ")[1].split("\n")[0].split(" | ")
+    assert row[:6] == ["–", "–", "–", "–", "– / – / –", "100 / – / 85"]
 
 
 def test_amendment_section_pairs_targets_with_displacements_and_counts_steps_saved(tmp_path):

@@ -34,6 +34,7 @@ from hipolicy_jax.runs.lock import CAMPAIGN_LOCK_FILE, RunLock, RunLockedError
 
 PROTOCOL_FILE = "results/metaworld/PROTOCOL.md"
 DIAGNOSIS = "results/metaworld/diagnosis"  # the post hoc diagnosis's files (``DiagnoseArgs.results``)
+STRIDED_EXPERTS = "strided_experts.json"  # the bridge's chunking expert per stride and action space (diagnosis)
 # The protocol's tasks in its order (round robin over DP3's groups), with their DP3 group.
 TASKS: tuple[tuple[str, str], ...] = (
     ("basketball", "medium"), ("assembly", "hard"), ("shelf-place", "very hard"), ("bin-picking", "medium"),
@@ -141,11 +142,14 @@ def run_changes(budget: str, steps: int | None) -> tuple[tuple[str, int], ...]:
 @dataclasses.dataclass(frozen=True)
 class DiagnoseArgs(MetaWorldArgs):
     """Post hoc, not in the protocol: per task, how far a stride's segment of Meta-World's displacement actions moves
-    the hand (the campaign's demos), and each recorded DP+HiPolicy network evaluated again at stride 1 (w/o EG) on
-    its seed's initial states, beside DP and the guided evaluation → ``results/metaworld/diagnosis/``."""
+    the hand (the campaign's demos; none for ``metaworld-target:<task>``, whose actions are absolute), and each
+    recorded DP+HiPolicy network evaluated again at stride 1 (w/o EG) on its seed's initial states, beside DP and the
+    guided evaluation → ``results/metaworld/diagnosis/`` (amendment 1's tasks: pass ``--tasks metaworld-target:...
+    --results results/metaworld/target/diagnosis``)."""
 
     TABLE: ClassVar[str] = "diagnose"
     results: str = DIAGNOSIS
+    experts: str = os.path.join(DIAGNOSIS, STRIDED_EXPERTS)  # check_experts' summary
     steps: int | None = None  # training steps T of the runs (default: the pilot's, as ``main``)
 
     def default_tasks(self) -> tuple[str, ...]:
@@ -433,7 +437,8 @@ def amendment_section(args: MainArgs, records: list[dict], displaced: list[dict]
     rows = grouped_rows(args, both, [DISPLACEMENTS, "DP"], paired=[("DP", DISPLACEMENTS)], groups=groups)
     tasks = [t for _, ts in groups for t in ts]
     speed = speed_rows(args, records, args.seeds, tasks, new="DP+HiPolicy", base="DP")
-    experts, coverage = strided_experts(diagnosis), demo_coverages(diagnosis, tasks)
+    experts = strided_experts(os.path.join(diagnosis, STRIDED_EXPERTS))
+    coverage = demo_coverages(diagnosis, tasks)
     for row in speed:  # per task only: the average row gets blanks
         task = row[0] if row[0] in tasks else None
         by_stride = experts.get(task.partition(":")[2], {}).get("target", {}) if task else {}
@@ -468,16 +473,14 @@ def amendment_section(args: MainArgs, records: list[dict], displaced: list[dict]
 # ---------------------------------------------------------------------------------------------- diagnose
 
 STRIDE1 = "DP+HiPolicy at stride 1"  # the same network as DP+HiPolicy, entropy guidance off (w/o EG)
-STRIDED_EXPERTS = "strided_experts.json"  # the bridge's chunking expert per stride and action space (diagnosis)
 STRIDED_EXPERTS_COMMAND = (".venv-metaworld/bin/python -m metaworld_bridge.check_experts --tasks <the protocol's tasks> "
                            "--strides 1 2 3 --action-spaces delta target --seeds 20 --max-steps 200 --out "
-                           f"results/metaworld/diagnosis/{STRIDED_EXPERTS}")
+                           f"{DIAGNOSIS}/{STRIDED_EXPERTS}")
 
 
-def strided_experts(results: str) -> dict:
-    """``<results>/strided_experts.json``'s per-task entries ({task: {action space: {stride: summary}}}, bare task
-    names); empty when the file is missing."""
-    path = os.path.join(results, STRIDED_EXPERTS)
+def strided_experts(path: str) -> dict:
+    """The per-task entries of ``check_experts``'s summary at ``path`` ({task: {action space: {stride: summary}}},
+    bare task names); empty when the file is missing."""
     return read_json(path).get("tasks", {}) if os.path.exists(path) else {}
 
 
@@ -532,7 +535,8 @@ def diagnose_table(args: DiagnoseArgs) -> str:
         bare = task.partition(":")[2]
         path = coverage_path(args.results, task)
         cfg = camp.run_config(task, hip, args.seeds[0], changes)
-        if not os.path.exists(path) and not args.from_records:
+        displacements = task.partition(":")[0] != TARGET_SUITE  # coverage speaks of displacement actions only
+        if displacements and not os.path.exists(path) and not args.from_records:
             write_json(path, demo_coverage(camp.ensure_demos(cfg, args.seeds[0]), cfg.policy.chunk))
         for seed in args.seeds:
             evs = {col: reader.evaluate(task, col, seed, changes) for col in (dp, hip)}
@@ -580,7 +584,7 @@ def diagnose_table(args: DiagnoseArgs) -> str:
                 f"{100 * coverage[task]['saturated_xyz']:.0f}" if task in coverage else "–",
                 " / ".join(f"{100 * v:.0f}" for v in share) if hip_recs else "–"]
 
-    experts = strided_experts(args.results)
+    experts = strided_experts(args.experts)
 
     def expert_cells(task: str) -> list[str]:
         by_space = experts.get(task.partition(":")[2], {})
@@ -607,7 +611,8 @@ def diagnose_table(args: DiagnoseArgs) -> str:
              "8·s steps ahead in the simulator (then restored) and every s-th of its actions is executed, 8 per "
              "chunk; as Meta-World's displacements, or as absolute hand targets (each turned into the displacement "
              "that reaches it, at most 1 cm a step); success over the seeds of "
-             f"`{STRIDED_EXPERTS}` (`{STRIDED_EXPERTS_COMMAND}`; '–' until it is run). It is what HiPolicy's "
+             f"`{os.path.relpath(args.experts)}` (`{STRIDED_EXPERTS_COMMAND}`; '–' until it is run). It is what "
+             "HiPolicy's "
              "stride-s segments would execute if the network were the expert.",
              f"{STRIDE1}: each DP+HiPolicy network served again with entropy guidance off (always stride 1), on the "
              f"same {eval_episodes(args)} initial states per seed as DP and DP+HiPolicy "
@@ -628,7 +633,9 @@ def diagnose_table(args: DiagnoseArgs) -> str:
                        "that trained the network (run this command before its run folder is gone); a retrained "
                        "network would not be the recorded one.")
     figure = success_by_task_figure(args, records, labels, "Meta-World, post hoc: DP+HiPolicy's network at stride 1")
-    return write_results(args, "Meta-World diagnosis: HiPolicy's strides on displacement actions (post hoc)", notes,
+    targets = all(t.partition(":")[0] == TARGET_SUITE for t in args.tasks)
+    return write_results(args, "Meta-World diagnosis: HiPolicy's strides on "
+                         + ("absolute hand targets" if targets else "displacement actions") + " (post hoc)", notes,
                          table, records, figure)
 
 
