@@ -606,7 +606,9 @@ def diagnose_table(args: DiagnoseArgs) -> str:
              "Coverage = the executed move projected on the demo's, median over the demos' windows "
              "(`data.windowing.delta_segment_coverage`): ~1/s means the segment lags its own gripper schedule by "
              "a factor s. With the MJX tasks' absolute targets the segment ends where the demo did (coverage 1). "
-             "'xyz at bound': share of the demos' xyz action entries at ±1, where no segment can move faster.",
+             "'xyz at bound': share of the demos' xyz action entries at ±1, where no segment can move faster. "
+             "Both are '–' on absolute hand targets (`metaworld-target:<task>`), where a segment ends where the "
+             "demo did.",
              "Expert chunked: the scripted expert as a chunking policy, closed loop: at each decision it runs "
              "8·s steps ahead in the simulator (then restored) and every s-th of its actions is executed, 8 per "
              "chunk; as Meta-World's displacements, or as absolute hand targets (each turned into the displacement "
