@@ -399,12 +399,18 @@ def _metaworld_runs(task: str, variant: str) -> dict[int, dict]:
     return out
 
 
-def test_metaworld_table_recomputes_from_the_records():
+METAWORLD_TARGET = os.path.join(ROOT, "results", "metaworld", "target", "main.md")
+
+
+@pytest.mark.parametrize("table, suite", [(METAWORLD, "metaworld:"), (METAWORLD_TARGET, "metaworld-target:")],
+                         ids=["main", "amendment-1"])
+def test_metaworld_table_recomputes_from_the_records(table, suite):
     """Each state cell (success with its interval over seeds), each paired difference on the shared initial states,
-    and DP3's metric (per seed the mean of the 5 best periodic evaluations) from the bridge's run records."""
-    if not os.path.exists(METAWORLD):
-        pytest.skip("no committed Meta-World table yet")
-    with open(METAWORLD) as f:
+    and DP3's metric (per seed the mean of the 5 best periodic evaluations) from the bridge's run records: the main
+    table (displacement actions) and amendment 1's (absolute hand targets, its primary comparison)."""
+    if not os.path.exists(table):
+        pytest.skip(f"no committed {table}")
+    with open(table) as f:
         text = f.read()
     steps, variants = _metaworld_columns(text)
     sections = _tables(text)
@@ -413,7 +419,7 @@ def test_metaworld_table_recomputes_from_the_records():
     dp3 = {r[0]: r for r in sections[dp3_title[0]]} if dp3_title else {}
     checked = 0
     for task, row in main.items():
-        if not task.startswith("metaworld:"):
+        if not task.startswith(suite):
             continue
         runs = {col: _metaworld_runs(task, v) for col, v in variants.items()}
         for col, cell in (("DP", row[3]), ("DP+HiPolicy", row[4])):
@@ -443,10 +449,7 @@ def test_metaworld_table_recomputes_from_the_records():
         _check_cell(cell.split(", p=")[0] + (f" {_parse(cell)[4]}" if _parse(cell)[4] else ""), diffs,
                     f"{task} DP+HiPolicy − DP")
         checked += 1
-    assert checked, "the Meta-World table has no recorded cell"
-
-
-METAWORLD_TARGET = os.path.join(ROOT, "results", "metaworld", "target", "main.md")
+    assert checked, f"{table} has no recorded cell"
 
 
 def test_metaworld_target_secondary_comparison_recomputes_from_the_records():
@@ -480,3 +483,40 @@ def test_metaworld_target_secondary_comparison_recomputes_from_the_records():
                     f"{row[0]} DP on targets − DP on displacements")
         checked += 1
     assert checked, "the amendment's table has no task row"
+
+
+def test_metaworld_target_steps_saved_recompute_from_the_records():
+    """Amendment 1's steps to success: per seed, over the episodes both DP and DP+HiPolicy succeeded in on the shared
+    initial states, 100 · mean(DP − DP+HiPolicy steps) / mean(DP steps); the mean over seeds, its t interval and
+    the verdict the table prints; '–' where no seed has such an episode."""
+    if not os.path.exists(METAWORLD_TARGET):
+        pytest.skip("no committed table of amendment 1 yet")
+    with open(METAWORLD_TARGET) as f:
+        text = f.read()
+    steps, variants = _metaworld_columns(text)
+    rows = _tables(text)["Amendment 1, secondary: steps to success, DP+HiPolicy against DP (targets)"]
+    checked = 0
+    for row in rows:
+        if not row[0].startswith("metaworld-target:"):
+            continue
+        dp, hip = (_metaworld_runs(row[0], variants[c]) for c in ("DP", "DP+HiPolicy"))
+        saved = []
+        for seed in sorted(set(dp) & set(hip)):
+            both = np.asarray(dp[seed]["success"], bool) & np.asarray(hip[seed]["success"], bool)
+            if both.any():
+                base = np.asarray(dp[seed]["steps"], float)[both]
+                saved.append((base - np.asarray(hip[seed]["steps"], float)[both]) / base.mean())
+        cell = row[6]
+        if not saved:
+            assert cell == "–", (row[0], cell)
+            continue
+        m, lo, hi, _, _ = _parse(cell.split(", p=")[0])
+        est = _seed_level(saved, lo_hi=(-math.inf, math.inf))
+        _close(m, 100 * est[0], f"{row[0]} steps saved")
+        if math.isfinite(est[1]):
+            _close(lo, 100 * est[1], f"{row[0]} steps saved (low)")
+            _close(hi, 100 * est[2], f"{row[0]} steps saved (high)")
+            expected = "faster" if est[1] > 0 else "slower" if est[2] < 0 else "no difference"
+            assert cell.endswith(f"({expected})"), (row[0], cell, expected)
+        checked += 1
+    assert checked, "the amendment's steps table has no recorded cell"
