@@ -452,19 +452,23 @@ def test_metaworld_table_recomputes_from_the_records(table, suite):
     assert checked, f"{table} has no recorded cell"
 
 
-def test_metaworld_target_secondary_comparison_recomputes_from_the_records():
-    """Amendment 1's secondary comparison: each task's DP on absolute targets − DP on displacements (the main
-    campaign's DP of the same task), paired on the shared initial states, from the two campaigns' run records."""
+def _amendment_rows(section: str) -> tuple[dict[str, str], list[list[str]]]:
+    """Amendment 1's table: its state columns' record directories and the task rows of ``section``; skips the test
+    while the table is not committed."""
     if not os.path.exists(METAWORLD_TARGET):
         pytest.skip("no committed table of amendment 1 yet")
     with open(METAWORLD_TARGET) as f:
         text = f.read()
-    steps, variants = _metaworld_columns(text)
-    rows = _tables(text)["Amendment 1, secondary: DP on absolute targets against DP on displacements"]
+    _, variants = _metaworld_columns(text)
+    return variants, [r for r in _tables(text)[section] if r[0].startswith("metaworld-target:")]
+
+
+def test_metaworld_target_secondary_comparison_recomputes_from_the_records():
+    """Amendment 1's secondary comparison: each task's DP on absolute targets − DP on displacements (the main
+    campaign's DP of the same task), paired on the shared initial states, from the two campaigns' run records."""
+    variants, rows = _amendment_rows("Amendment 1, secondary: DP on absolute targets against DP on displacements")
     checked = 0
     for row in rows:
-        if not row[0].startswith("metaworld-target:"):
-            continue
         target = _metaworld_runs(row[0], variants["DP"])
         displaced = _metaworld_runs("metaworld:" + row[0].partition(":")[2], variants["DP"])
         assert displaced, f"{row[0]}: the main campaign holds no DP record of this task"
@@ -489,16 +493,9 @@ def test_metaworld_target_steps_saved_recompute_from_the_records():
     """Amendment 1's steps to success: per seed, over the episodes both DP and DP+HiPolicy succeeded in on the shared
     initial states, 100 · mean(DP − DP+HiPolicy steps) / mean(DP steps); the mean over seeds, its t interval and
     the verdict the table prints; '–' where no seed has such an episode."""
-    if not os.path.exists(METAWORLD_TARGET):
-        pytest.skip("no committed table of amendment 1 yet")
-    with open(METAWORLD_TARGET) as f:
-        text = f.read()
-    steps, variants = _metaworld_columns(text)
-    rows = _tables(text)["Amendment 1, secondary: steps to success, DP+HiPolicy against DP (targets)"]
+    variants, rows = _amendment_rows("Amendment 1, secondary: steps to success, DP+HiPolicy against DP (targets)")
     checked = 0
     for row in rows:
-        if not row[0].startswith("metaworld-target:"):
-            continue
         dp, hip = (_metaworld_runs(row[0], variants[c]) for c in ("DP", "DP+HiPolicy"))
         saved = []
         for seed in sorted(set(dp) & set(hip)):
