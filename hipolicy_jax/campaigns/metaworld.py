@@ -439,14 +439,17 @@ def amendment_section(args: MainArgs, records: list[dict], displaced: list[dict]
     speed = speed_rows(args, records, args.seeds, tasks, new="DP+HiPolicy", base="DP")
     experts = strided_experts(os.path.join(diagnosis, STRIDED_EXPERTS))
     coverage = demo_coverages(diagnosis, tasks)
+
+    def striding_cells(task: str) -> list[str]:
+        """The chunked expert's steps on targets per stride, and the demos' length / steps at the bound."""
+        by_stride = experts.get(task.partition(":")[2], {}).get("target", {})
+        steps = [by_stride.get(s, {}).get("mean_steps") for s in ("1", "2", "3")]
+        cov = coverage.get(task, {})
+        return [" / ".join("–" if v is None else f"{v:.1f}" for v in steps) if by_stride else "–",
+                f"{cov['mean_steps']:.1f} / {cov['mean_steps_at_bound']:.1f}" if "mean_steps_at_bound" in cov else "–"]
+
     for row in speed:  # per task only: the average row gets blanks
-        task = row[0] if row[0] in tasks else None
-        by_stride = experts.get(task.partition(":")[2], {}).get("target", {}) if task else {}
-        row += ["" if task is None else " / ".join(
-                    f"{by_stride[s]['mean_steps']:.1f}" if by_stride.get(s, {}).get("mean_steps") is not None
-                    else "–" for s in ("1", "2", "3")) if by_stride else "–",
-                "" if task is None else f"{coverage[task]['mean_steps']:.1f} / {coverage[task]['mean_steps_at_bound']:.1f}"
-                if "mean_steps_at_bound" in coverage.get(task, {}) else "–"]
+        row += striding_cells(row[0]) if row[0] in tasks else ["", ""]
     return ("\n## Amendment 1, secondary: DP on absolute targets against DP on displacements\n\n"
             "The same demos, seeds and initial states; DP (displacements) is the main table's DP "
             "(`results/metaworld/main.md`, its records in `results/runs/metaworld/metaworld_<task>/`). Paired as "
@@ -614,8 +617,7 @@ def diagnose_table(args: DiagnoseArgs) -> str:
              "chunk; as Meta-World's displacements, or as absolute hand targets (each turned into the displacement "
              "that reaches it, at most 1 cm a step); success over the seeds of "
              f"`{os.path.relpath(args.experts)}` (`{STRIDED_EXPERTS_COMMAND}`; '–' until it is run). It is what "
-             "HiPolicy's "
-             "stride-s segments would execute if the network were the expert.",
+             "HiPolicy's stride-s segments would execute if the network were the expert.",
              f"{STRIDE1}: each DP+HiPolicy network served again with entropy guidance off (always stride 1), on the "
              f"same {eval_episodes(args)} initial states per seed as DP and DP+HiPolicy "
              "(`python -m experiments.evaluate --checkpoint RUN`, its guided pass the campaign's, reused). "
