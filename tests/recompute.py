@@ -1,0 +1,750 @@
+"""An independent recomputation of the committed tables from the committed run records (json, numpy, scipy only).
+
+Not the project's statistics module, not its table code, not the tables' JSON: the rules of ``results/PROTOCOL.md``
+(version 2) and ``results/metaworld/PROTOCOL.md`` written again. A seed (one trained network) contributes the mean
+over its episodes; a task's cell is the mean over seeds with the 95 % t interval over seeds (scipy's one-sample t
+test) and its p, clipped to the quantity's range; when every seed gives the same value the episode-level standard
+error replaces the seeds' one. An average is the mean of the task means with a Welch–Satterthwaite t interval.
+
+Every check here builds the cell text the records give (the tables' format: one decimal, p to two significant
+digits) and compares it with the printed cell, so an edit of any printed digit fails. Each ``check_*`` function
+reads the tables under ``root`` (a copy of the repository's ``results/`` and ``README.md`` for the mutation check,
+``tests/mutation_tables.py``), always reads the records of this repository, and returns the number of cells it
+compared; the records' side is cached, so checking an edited copy again is cheap.
+"""
+
+from __future__ import annotations
+
+import functools
+import glob
+import json
+import math
+import os
+import re
+
+import numpy as np
+from scipy import stats
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+CPU_RECORDS = os.path.join(ROOT, "results", "runs", "cpu")
+MW_RECORDS = os.path.join(ROOT, "results", "runs", "metaworld")
+TASKS = ("press_button", "stack_cubes", "latch_door", "pick_place")
+PRECISE = {"press_button": True, "stack_cubes": True, "latch_door": False, "pick_place": False}
+SEEDS = (0, 1, 2)
+ALL_SEEDS = (0, 1, 2, 3, 4)  # single-frequency baselines also train seeds 3, 4 (no HiPolicy partner)
+DASH = "–"
+RATE = (0.0, 1.0)
+DIFF = (-1.0, 1.0)
+COUNT = (0.0, math.inf)
+# results/metaworld/PROTOCOL.md: DP3's groups of the protocol's tasks
+MW_GROUP = {"basketball": "medium", "assembly": "hard", "shelf-place": "very hard", "bin-picking": "medium",
+            "hand-insert": "hard", "stick-push": "very hard", "coffee-pull": "medium", "pick-out-of-hole": "hard",
+            "pick-place-wall": "very hard", "coffee-push": "medium", "pick-place": "hard", "hammer": "medium",
+            "push": "hard", "push-wall": "medium", "sweep": "medium", "sweep-into": "medium"}
+MW_GROUPS = ("medium", "hard", "very hard")
+
+
+# ------------------------------------------------------------------------------------------------------- statistics
+
+class Est:
+    """A mean over seeds (or tasks) with its 95 % interval, p, standard error and degrees of freedom."""
+
+    def __init__(self, mean, low=math.nan, high=math.nan, p=math.nan, se=math.nan, df=0.0, seeds=1):
+        self.mean, self.low, self.high, self.p, self.se, self.df, self.seeds = mean, low, high, p, se, df, seeds
+
+
+def _finite_groups(groups) -> list[np.ndarray]:
+    out = [np.asarray(g, float).ravel() for g in groups]
+    return [g[np.isfinite(g)] for g in out if np.isfinite(g).any()]
+
+
+def _interval(mean, se, df, seeds, bounds):
+    if not (df > 0 and math.isfinite(se)):
+        return Est(mean, se=se, df=df, seeds=seeds)
+    half = stats.t.ppf(0.975, df) * se
+    p = 2 * stats.t.sf(abs(mean) / se, df) if se > 0 else (1.0 if mean == 0 else 0.0)
+    low, high = mean - half, mean + half
+    if bounds:
+        low, high = max(low, bounds[0]), min(high, bounds[1])
+    return Est(mean, low, high, float(p), se, df, seeds)
+
+
+def seed_level(groups, bounds=None) -> Est | None:
+    """The mean over seeds of each seed's episode mean (non-finite episodes, e.g. failures' steps, left out)."""
+    g = _finite_groups(groups)
+    if not g:
+        return None
+    values = np.array([x.mean() for x in g])
+    if len(values) == 1:
+        return Est(float(values[0]), seeds=1)
+    if np.ptp(values) > 0:
+        test = stats.ttest_1samp(values, 0.0)
+        ci = test.confidence_interval(0.95)
+        low, high = ci.low, ci.high
+        if bounds:
+            low, high = max(low, bounds[0]), min(high, bounds[1])
+        se = float(values.std(ddof=1) / math.sqrt(len(values)))
+        return Est(float(values.mean()), low, high, float(test.pvalue), se, len(values) - 1.0, len(values))
+    se = math.sqrt(sum(x.var(ddof=1) / x.size for x in g if x.size > 1)) / len(g)
+    return _interval(float(values.mean()), se, len(values) - 1.0, len(values), bounds)
+
+
+def welch(per_task: list[list[np.ndarray]], bounds=None) -> Est | None:
+    """The mean of the task means, standard error √(Σ SE²)/T, Welch–Satterthwaite degrees of freedom."""
+    ests = [e for e in (seed_level(g) for g in per_task) if e is not None]
+    if not ests:
+        return None
+    mean = float(np.mean([e.mean for e in ests]))
+    if any(e.df <= 0 or not math.isfinite(e.se) for e in ests):
+        return Est(mean, seeds=sum(e.seeds for e in ests))
+    var = np.array([e.se ** 2 for e in ests])
+    denominator = sum(v ** 2 / e.df for v, e in zip(var, ests))
+    df = var.sum() ** 2 / denominator if denominator > 0 else float(sum(e.df for e in ests))
+    return _interval(mean, math.sqrt(var.sum()) / len(ests), df, sum(e.seeds for e in ests), bounds)
+
+
+def pooled(per_task, bounds=None) -> Est | None:
+    """One task: its seed-level estimate; several: the Welch average."""
+    return seed_level(per_task[0], bounds) if len(per_task) == 1 else welch(per_task, bounds)
+
+
+def sign_flip_p(per_task: list[list[np.ndarray]]) -> float:
+    """Exact two-sided sign-flip p over the (task, seed) differences, each task weighing the same."""
+    values = [np.array([g.mean() for g in _finite_groups(t)]) for t in per_task]
+    flat = np.concatenate(values)
+    assert flat.size <= 16, f"{flat.size} (task, seed) differences: the exact test enumerates at most 2^16 signs"
+    weights = np.concatenate([np.full(v.size, 1 / (v.size * len(values))) for v in values])
+    signs = 1 - 2 * ((np.arange(2 ** flat.size)[:, None] >> np.arange(flat.size)) & 1)
+    return float(np.mean(np.abs(signs @ (weights * flat)) >= abs(weights @ flat) - 1e-12))
+
+
+def mcnemar_p(pairs: list[tuple[np.ndarray, np.ndarray]]) -> float:
+    """Exact two-sided McNemar p over all (seed, episode) pairs, in integers."""
+    b = sum(int(np.sum(x & ~y)) for x, y in pairs)
+    c = sum(int(np.sum(~x & y)) for x, y in pairs)
+    n = b + c
+    if n == 0:
+        return 1.0
+    return min(1.0, 2 * sum(math.comb(n, i) for i in range(min(b, c) + 1)) / 2 ** n)
+
+
+def bootstrap(per_task: list[list[np.ndarray]], resamples: int = 10_000, seed: int = 0) -> tuple[float, float]:
+    """Version 1's hierarchical bootstrap as the protocol fixed it (its random stream included): per task, every
+    resample draws 3 seed slots with replacement and, for every slot, that seed's episodes with replacement; the
+    task's value is the mean of its slots' episode means, the resample's the mean over tasks; the 2.5 / 97.5 %
+    quantiles. A numpy ``default_rng(seed)``: per task the slots' seeds first, then per seed the episodes of
+    every slot as if it had drawn that seed."""
+    rng = np.random.default_rng(seed)
+    total = np.zeros(resamples)
+    for groups in per_task:
+        groups = _finite_groups(groups)
+        s = len(groups)
+        picks = rng.integers(0, s, size=(resamples, s))
+        slots = np.zeros((resamples, s))
+        for j, g in enumerate(groups):
+            idx = rng.integers(0, g.size, size=(resamples, s, g.size))
+            slots += np.where(picks == j, g[idx].mean(axis=2), 0.0)
+        total += slots.mean(axis=1)
+    total /= len(per_task)
+    return float(np.quantile(total, 0.025)), float(np.quantile(total, 0.975))
+
+
+def verdict(e: Est | None) -> str:
+    if e is None or not math.isfinite(e.low):
+        return DASH
+    return "wins" if e.low > 0 else "loses" if e.high < 0 else "ties"
+
+
+def speed_word(e: Est) -> str:
+    return "faster" if e.low > 0 else "slower" if e.high < 0 else "no difference"
+
+
+# ----------------------------------------------------------------------------------------------------- the texts
+
+def iv(e: Est | None, scale: float = 100.0, signed: bool = False) -> str:
+    """'m [lo, hi]' to one decimal ('+' signs for differences); 'm' without an interval or with no width."""
+    if e is None or not math.isfinite(e.mean):
+        return DASH
+    m, lo, hi = e.mean * scale, e.low * scale, e.high * scale
+    f = "+.1f" if signed else ".1f"
+    if lo == hi or not (math.isfinite(lo) and math.isfinite(hi)):
+        return f"{m:{f}}"
+    return f"{m:{f}} [{lo:{f}}, {hi:{f}}]"
+
+
+def p_text(p: float) -> str:
+    if not math.isfinite(p):
+        return DASH
+    return "<1e-300" if p == 0.0 else f"{p:.2g}"
+
+
+def paired_text(e: Est | None, tasks: int = 1) -> str:
+    """'Δ [lo, hi], p=… (wins / ties / loses)'; without a test, why."""
+    if e is None:
+        return DASH
+    if not math.isfinite(e.p):
+        why = f"{e.seeds} seed" if tasks == 1 else "a task has 1 seed"
+        return f"{iv(e, signed=True)} ({why}: no test)"
+    return f"{iv(e, signed=True)}, p={p_text(e.p)} ({verdict(e)})"
+
+
+def finding_text(e: Est) -> str:
+    v = verdict(e)
+    return f"{iv(e, signed=True)} ({e.seeds} seed: no test)" if v == DASH else f"{iv(e, signed=True)} {v}"
+
+
+def relative_gain(base: Est | None, new: Est | None) -> str:
+    if base is None or new is None or not base.mean > 0:
+        return ""
+    return f" ({(new.mean - base.mean) / base.mean * 100:+.0f}%)"
+
+
+# ---------------------------------------------------------------------------------------------- reading the tables
+
+def read(root: str, rel: str) -> str:
+    path = os.path.join(root, rel)
+    assert os.path.exists(path), f"{path}: a committed table is missing"
+    with open(path) as f:
+        return f.read()
+
+
+def split_row(line: str) -> list[str]:
+    return [c.strip() for c in line.strip()[1:-1].split("|")]
+
+
+def sections(text: str) -> dict[str, list[tuple[list[str], list[list[str]]]]]:
+    """Per section title ('' before the first '## '), its markdown tables: (header, body rows)."""
+    out, title, table = {"": []}, "", None
+    for line in text.splitlines():
+        if line.startswith("#") and line.lstrip("#").startswith(" "):
+            title = line.lstrip("#").strip()
+            out.setdefault(title, [])
+            table = None
+        elif line.startswith("|"):
+            if table is None:
+                table = (split_row(line), [])
+                out[title].append(table)
+            elif not set(line) <= set("|-: "):
+                table[1].append(split_row(line))
+        else:
+            table = None
+    return out
+
+
+def one_table(secs, title: str, where: str):
+    """The single table of a section; a missing section fails with its name."""
+    assert title in secs, f"{where}: no section {title!r} (sections: {[t for t in secs if t]})"
+    tables = secs[title]
+    assert len(tables) == 1, f"{where}, {title!r}: {len(tables)} tables, one expected"
+    return tables[0]
+
+
+class Tally:
+    """Compares printed cells with the records' texts and counts them."""
+
+    def __init__(self, where: str):
+        self.where, self.n = where, 0
+
+    def eq(self, printed: str, expected: str, what: str):
+        assert printed == expected, f"{self.where}: {what}: the table prints {printed!r}, the records give {expected!r}"
+        self.n += 1
+
+    def table(self, printed, header: list[str], rows: list[list[str]], what: str = ""):
+        head, body = printed
+        assert head == header, f"{self.where}{what}: header {head} != {header}"
+        self.n += len(head)
+        labels = [r[0] for r in body]
+        assert labels == [r[0] for r in rows], f"{self.where}{what}: rows {labels}, the records give {[r[0] for r in rows]}"
+        for got, want in zip(body, rows):
+            assert len(got) == len(want), f"{self.where}{what}, row {want[0]!r}: {len(got)} cells, {len(want)} expected"
+            for h, g, w in zip(header, got, want):
+                self.eq(g, w, f"{what} row {want[0]!r}, column {h!r}".strip())
+
+    def text(self, text: str, sentence: str):
+        assert sentence in text, f"{self.where}: the records give the sentence {sentence!r}, the file does not hold it"
+        self.n += len(re.findall(r"\d+(?:\.\d+)?", sentence)) or 1
+
+
+def command_arg(text: str, flag: str) -> list[str]:
+    """The values of ``--flag`` in a table's Command line (the table's inputs)."""
+    command = re.search(r"^Command: `(.*)`$", text, re.M)
+    assert command, "no Command line"
+    words = command.group(1).split()
+    assert flag in words, f"the command has no {flag}"
+    out = []
+    for w in words[words.index(flag) + 1:]:
+        if w.startswith("--"):
+            break
+        out.append(w)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ the CPU records
+
+@functools.lru_cache(maxsize=None)
+def _record(path: str) -> dict | None:
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        return json.load(f)
+
+
+@functools.lru_cache(maxsize=None)
+def rlow_suffix(task: str) -> str:
+    """The Rlow variant's directory suffix from the pilot's committed choice (``_d25``, ``_t8000``)."""
+    with open(os.path.join(ROOT, "results", "pilot_choice.json")) as f:
+        change = json.load(f)[task]
+    return f"_d{change['episodes']}" if "episodes" in change else f"_t{change['train.num_steps']}"
+
+
+def cpu_eval(task, obs, variant, seed, execution="chunk", guided=True, percentiles=None) -> dict | None:
+    """The one 100-episode evaluation of a run with the campaign's inference settings."""
+    record = _record(os.path.join(CPU_RECORDS, task, obs, variant, f"seed{seed}.json"))
+    if record is None:
+        return None
+    found = []
+    for key, e in record["evaluations"].items():
+        s = json.loads(key)
+        if (s["execution"] == execution and s["guided"] == guided and s["episodes"] == 100
+                and s.get("percentiles") == percentiles and s.get("num_samples") == 16 and s.get("num_steps") == 10
+                and s.get("sampler", "auto") == "auto"):
+            found.append(e)
+    assert len(found) <= 1, f"{task}/{obs}/{variant}/seed{seed}: {len(found)} evaluations match"
+    return found[0] if found else None
+
+
+# label: (obs, variant, execution, guided)
+CPU_COLUMNS = {
+    "DP": ("state", "dp", "chunk", True),
+    "DP+HiPolicy": ("state", "hipolicy", "chunk", True),
+    "HiPolicy": ("state", "hipolicy", "chunk", True),
+    "DP3": ("pointcloud", "dp", "chunk", True),
+    "DP3+HiPolicy": ("pointcloud", "hipolicy", "chunk", True),
+    "DP+TE": ("state", "dp", "te", True),
+    "DP+AAC": ("state", "dp", "aac", True),
+    "w/o EG": ("state", "hipolicy", "chunk", False),
+}
+
+
+def cpu_runs(task: str, column: str, suffix: str, seeds=ALL_SEEDS) -> dict[int, dict]:
+    obs, variant, execution, guided = CPU_COLUMNS[column]
+    out = {}
+    for s in seeds:
+        e = cpu_eval(task, obs, variant + suffix, s, execution, guided)
+        if e is not None:
+            out[s] = e
+    return out
+
+
+# ------------------------------------------------------------------------------------------ per-episode outcomes
+
+def success(runs: dict[int, dict]) -> dict[int, np.ndarray]:
+    return {s: np.asarray(e["success"], float) for s, e in runs.items()}
+
+
+def steps(runs: dict[int, dict]) -> dict[int, np.ndarray]:
+    """The steps of the successful episodes (NaN for failures)."""
+    return {s: np.where(np.asarray(e["success"], bool), np.asarray(e["steps"], float), np.nan) for s, e in runs.items()}
+
+
+def decisions(runs: dict[int, dict]) -> dict[int, np.ndarray]:
+    return {s: np.asarray(e["decisions"], float) for s, e in runs.items()}
+
+
+def check_network(a: dict[int, dict], b: dict[int, dict], what: str):
+    """Two columns of one run must come from one network (a retrained run would pair two)."""
+    for s in set(a) & set(b):
+        na, nb = a[s].get("network", {}), b[s].get("network", {})
+        if na.get("params_sha256") and nb.get("params_sha256"):
+            assert na["params_sha256"] == nb["params_sha256"], (what, s)
+        elif "final_loss" in na and "final_loss" in nb:
+            assert na["final_loss"] == nb["final_loss"], (what, s)
+
+
+def diffs(new: dict[int, np.ndarray], base: dict[int, np.ndarray]) -> list[np.ndarray] | None:
+    """Per seed both have: new − base per episode (the same initial states); None without a pair."""
+    shared = sorted(set(new) & set(base))
+    if not shared or not all(new[s].size == base[s].size > 1 for s in shared):
+        return None
+    return [new[s] - base[s] for s in shared]
+
+
+def cell(per_task: list[dict[int, np.ndarray]], bounds, scale=100.0, gain_base=None) -> str:
+    """A column's cell over tasks: '–' when a task has no value (an average over some tasks is none)."""
+    if not all(per_task):
+        return DASH
+    e = pooled([list(g.values()) for g in per_task], bounds)
+    gain = ""
+    if gain_base is not None and len(per_task) > 1 and all(gain_base):
+        gain = relative_gain(welch([list(g.values()) for g in gain_base]), welch([list(g.values()) for g in per_task]))
+    return iv(e, scale) + gain
+
+
+def paired_est(new: list[dict], base: list[dict]) -> tuple[Est | None, list[list[np.ndarray]] | None]:
+    """new − base success over tasks (each task's shared seeds), None while a task has no pair."""
+    per_task = [diffs(success(a), success(b)) for a, b in zip(new, base)]
+    if any(d is None for d in per_task):
+        return None, None
+    return pooled(per_task, DIFF), per_task
+
+
+def saved_groups(new: dict[int, dict], base: dict[int, dict]) -> list[np.ndarray]:
+    """Per seed, over the episodes both succeeded in: (base − new steps) / mean(base steps)."""
+    out = []
+    for s in sorted(set(new) & set(base)):
+        both = np.asarray(new[s]["success"], bool) & np.asarray(base[s]["success"], bool)
+        if both.any():
+            b = np.asarray(base[s]["steps"], float)[both]
+            out.append((b - np.asarray(new[s]["steps"], float)[both]) / b.mean())
+    return out
+
+
+def speed_rows(tasks: list[str], runs_of, new: str, base: str) -> list[list[str]]:
+    """Per task and on average: base and new success, the success cost, their steps to success, steps saved."""
+    rows = []
+    for label, ts in [(t, [t]) for t in tasks] + ([("**Average**", tasks)] if len(tasks) > 1 else []):
+        a, b = [runs_of(t, new) for t in ts], [runs_of(t, base) for t in ts]
+        cost, _ = paired_est(a, b)
+        groups = [saved_groups(x, y) for x, y in zip(a, b)]
+        saved = None if not all(groups) else pooled(groups)
+        saved_text = DASH if saved is None else (
+            f"{iv(saved, signed=True)}, p={p_text(saved.p)}"
+            + (f" ({speed_word(saved)})" if math.isfinite(saved.low) else ""))
+        rows.append([label, cell([success(x) for x in b], RATE), cell([success(x) for x in a], RATE),
+                     DASH if cost is None else f"{iv(cost, signed=True)} ({verdict(cost)})",
+                     cell([steps(x) for x in b], COUNT, 1.0), cell([steps(x) for x in a], COUNT, 1.0), saved_text])
+    return rows
+
+
+# ------------------------------------------------------------------------------------------------ findings.md
+
+FINDINGS_ROWS = (  # (new, base, regime, table) in the order findings.md lists them
+    ("DP+HiPolicy", "DP", "100 demos", "main"), ("DP3+HiPolicy", "DP3", "100 demos", "main"),
+    ("HiPolicy", "DP+TE", "100 demos", "execution"), ("HiPolicy", "DP+AAC", "100 demos", "execution"),
+    ("HiPolicy", "w/o EG", "100 demos", "execution"), ("DP+HiPolicy", "DP", "Rlow", "main_rlow"),
+    ("HiPolicy", "DP+TE", "Rlow", "execution_rlow"), ("HiPolicy", "DP+AAC", "Rlow", "execution_rlow"),
+    ("HiPolicy", "w/o EG", "Rlow", "execution_rlow"))
+FINDINGS_HEADER = ["Comparison", "Demos (table)", *TASKS, "Average (seed-level t test)", "Sign-flip p",
+                   "Episode-level McNemar p", "Leave one task out", "Tasks W/T/L"]
+SPEED_HEADER = ["Task", "w/o EG SR (%)", "HiPolicy SR (%)", "Success cost (points)", "w/o EG steps",
+                "HiPolicy steps", "Steps saved (%)"]
+BUDGET_STEPS = (2000, 8000, 24000)
+BUDGET_TASKS = ("press_button", "stack_cubes")
+
+
+def _suffix(regime: str, task: str) -> str:
+    return "" if regime == "100 demos" else rlow_suffix(task)
+
+
+def _cpu_pair_runs(task, new, base, regime, suffix=None):
+    sfx = _suffix(regime, task) if suffix is None else suffix
+    a, b = cpu_runs(task, new, sfx), cpu_runs(task, base, sfx)
+    if CPU_COLUMNS[new][:2] == CPU_COLUMNS[base][:2]:
+        check_network(a, b, (task, new, base))
+    return a, b
+
+
+@functools.lru_cache(maxsize=None)
+def findings_expected() -> dict:
+    """findings.md as the records give it: its main table's rows, the tally sentence, the speed tables, the budget
+    rows and the side-by-side rows with their summary."""
+    rows, tally, side = [], {"wins": 0, "ties": 0, "loses": 0}, []
+    for new, base, regime, table in FINDINGS_ROWS:
+        runs = {t: _cpu_pair_runs(t, new, base, regime) for t in TASKS}
+        cells, counts = [], {"wins": 0, "ties": 0, "loses": 0}
+        for t in TASKS:
+            e, _ = paired_est([runs[t][0]], [runs[t][1]])
+            if e is None:
+                cells.append(DASH)
+                continue
+            if verdict(e) in counts:
+                counts[verdict(e)] += 1
+            cells.append(finding_text(e))
+        for v in tally:
+            tally[v] += counts[v]
+        avg, per_task = paired_est([runs[t][0] for t in TASKS], [runs[t][1] for t in TASKS])
+        mcnemar = DASH
+        if avg is not None:
+            pairs = []
+            for t in TASKS:
+                a, b = success(runs[t][0]), success(runs[t][1])
+                pairs += [(a[s] > 0, b[s] > 0) for s in sorted(set(a) & set(b))]
+            mcnemar = p_text(mcnemar_p(pairs))
+        loo = []
+        for t in TASKS:
+            rest = [x for x in TASKS if x != t]
+            e, _ = paired_est([runs[x][0] for x in rest], [runs[x][1] for x in rest])
+            if e is not None:
+                loo.append(f"w/o {t} {iv(e, signed=True)} ({verdict(e)})")
+        label = f"{regime} ({table})"
+        rows.append([f"{new} vs {base}", label, *cells, paired_text(avg, len(TASKS)),
+                     DASH if avg is None else p_text(sign_flip_p(per_task)), mcnemar, "; ".join(loo) or DASH,
+                     "/".join(str(counts[v]) for v in ("wins", "ties", "loses"))])
+        for name, ts in [(t, [t]) for t in TASKS] + [("Average", list(TASKS))]:
+            e, groups = paired_est([runs[t][0] for t in ts], [runs[t][1] for t in ts])
+            if e is None or verdict(e) == DASH:
+                continue
+            low, high = bootstrap(groups)
+            b = Est(e.mean, max(low, -1.0), min(high, 1.0))
+            tv, bv = verdict(e), verdict(b)
+            side.append([f"{new} vs {base}", label, name, f"{iv(e, signed=True)} {tv}", f"{iv(b, signed=True)} {bv}",
+                         "yes" if tv == bv else "**no**", tv, bv])
+    total = sum(tally.values())
+    sentence = (f"Over the {total} (comparison, task) cells: HiPolicy wins {tally['wins']}, ties {tally['ties']}, "
+                f"loses {tally['loses']}.")
+    split = [r for r in side if r[6] != r[7]]
+    summary = f"They give the same verdict in {len(side) - len(split)} of {len(side)} cells" + (
+        "." if not split else "; they split on: " + "; ".join(
+            f"{r[0]}, {r[1]}, {r[2]} (t: {r[6]}, bootstrap: {r[7]})" for r in split) + ".")
+    speed = {}
+    for regime, table in (("100 demos", "execution"), ("Rlow", "execution_rlow")):
+        speed[regime, table] = speed_rows(list(TASKS), lambda t, c, r=regime: cpu_runs(t, c, _suffix(r, t)),
+                                          "HiPolicy", "w/o EG")
+    budget, estimates = [], {}
+    for n in BUDGET_STEPS:
+        cells = []
+        for t in TASKS:
+            if t not in BUDGET_TASKS:
+                cells.append(DASH)
+                continue
+            a, b = _cpu_pair_runs(t, "DP+HiPolicy", "DP", "", "" if n == 2000 else f"_t{n}")
+            e, _ = paired_est([a], [b])
+            estimates[n, t] = e
+            cells.append(DASH if e is None else finding_text(e))
+        budget.append([f"{n:,} steps", *cells])
+    budget.append([f"Gap {BUDGET_STEPS[0]:,} → {BUDGET_STEPS[-1]:,} steps (protocol's rule)",
+                   *(gap_trend(estimates.get((BUDGET_STEPS[0], t)), estimates.get((BUDGET_STEPS[-1], t)))
+                     if t in BUDGET_TASKS else DASH for t in TASKS)])
+    return {"rows": rows, "sentence": sentence, "side": [r[:6] for r in side], "summary": summary,
+            "speed": speed, "budget": budget}
+
+
+def gap_trend(first: Est | None, last: Est | None) -> str:
+    """The protocol's rule: the gap shrinks or grows when the longest training's interval excludes the first
+    point estimate (by which mean is nearer 0), else it holds."""
+    if first is None or last is None or not math.isfinite(last.low):
+        return DASH
+    if last.low <= first.mean <= last.high:
+        return "holds"
+    return "shrinks" if abs(last.mean) < abs(first.mean) else "grows"
+
+
+FINDINGS = os.path.join("results", "findings.md")
+
+
+def check_findings_table(root: str = ROOT) -> int:
+    text = read(root, FINDINGS)
+    want, tally = findings_expected(), Tally(FINDINGS)
+    tally.table(one_table(sections(text), "Findings: where HiPolicy wins, ties or loses", FINDINGS),
+                FINDINGS_HEADER, want["rows"])
+    tally.text(text, want["sentence"])
+    return tally.n
+
+
+def speed_title(regime: str, table: str) -> str:
+    return f"Entropy-guided execution, same network: HiPolicy vs w/o EG, {regime} ({table})"
+
+
+def check_findings_speed(root: str = ROOT, regime: str = "100 demos") -> int:
+    text = read(root, FINDINGS)
+    table = "execution" if regime == "100 demos" else "execution_rlow"
+    tally = Tally(f"{FINDINGS}, speed {regime}")
+    tally.table(one_table(sections(text), speed_title(regime, table), FINDINGS), SPEED_HEADER,
+                findings_expected()["speed"][regime, table])
+    return tally.n
+
+
+def check_findings_budget(root: str = ROOT) -> int:
+    text = read(root, FINDINGS)
+    tally = Tally(f"{FINDINGS}, budget")
+    tally.table(one_table(sections(text), "Training budget: DP+HiPolicy − DP (points) by training steps (budget.md)",
+                          FINDINGS), ["Training", *TASKS], findings_expected()["budget"])
+    return tally.n
+
+
+def check_findings_bootstrap(root: str = ROOT) -> int:
+    text = read(root, FINDINGS)
+    tally = Tally(f"{FINDINGS}, bootstrap")
+    want = findings_expected()
+    tally.table(one_table(sections(text), "The verdict's interval beside version 1's hierarchical bootstrap",
+                          FINDINGS),
+                ["Comparison", "Demos (table)", "Task", "t interval over seeds (verdict)",
+                 "Hierarchical bootstrap (its verdict)", "Same verdict"], want["side"])
+    tally.text(text, want["summary"])
+    return tally.n
+
+
+# ------------------------------------------------------------------------------------------------------ Meta-World
+
+def mw_dir(task: str) -> str:
+    suite, _, name = task.partition(":")
+    return os.path.join(MW_RECORDS, f"{suite}_{name}")
+
+
+@functools.lru_cache(maxsize=None)
+def mw_runs_cached(task: str, obs: str, variant: str) -> tuple:
+    out = []
+    for seed in SEEDS:
+        record = _record(os.path.join(mw_dir(task), obs, variant, f"seed{seed}.json"))
+        if record is None:
+            continue
+        main = [e for k, e in record["evaluations"].items()
+                if json.loads(k)["guided"] and json.loads(k)["execution"] == "chunk" and json.loads(k)["episodes"] == 100]
+        assert len(main) == 1, (task, obs, variant, seed)
+        out.append((seed, main[0]))
+    return tuple(out)
+
+
+def mw_runs(task: str, obs: str, variant: str) -> dict[int, dict]:
+    return dict(mw_runs_cached(task, obs, variant))
+
+
+def dp3_metric(runs: dict[int, dict]) -> dict[int, np.ndarray]:
+    """Per seed, the mean of the 5 best of its periodic evaluations (one value per network)."""
+    return {s: np.array([np.mean(sorted((c["success_rate"] for c in e["periodic"]["checkpoints"]), reverse=True)[:5])])
+            for s, e in runs.items()}
+
+
+@functools.lru_cache(maxsize=None)
+def mw_demo_steps(task: str) -> str:
+    for path in sorted(glob.glob(os.path.join(mw_dir(task), "*", "*", "*.json"))):
+        d = _record(path).get("demos")
+        if d and d.get("episodes") == 11:
+            return f"{d['frames'] / d['episodes']:.0f}"
+    return DASH
+
+
+def _mw_groups(tasks: list[str]) -> list[tuple[str, list[str]]]:
+    groups = [(g, [t for t in tasks if MW_GROUP.get(t.partition(":")[2]) == g]) for g in MW_GROUPS]
+    return groups + [("other", [t for t in tasks if t.partition(":")[2] not in MW_GROUP])]
+
+
+def grouped(tasks: list[str], cells_of, n_extra: int, extra=None) -> list[list[str]]:
+    """Rows per task by DP3 group, each group's average when there are several groups, then the total."""
+    groups = _mw_groups(tasks)
+    several = sum(bool(ts) for _, ts in groups) > 1
+    rows = []
+    for name, ts in groups:
+        for t in ts:
+            rows.append([t] + (extra(t) if extra else []) + cells_of([t]))
+        if ts and several:
+            rows.append([f"**Average ({name})**"] + [""] * n_extra + cells_of(ts))
+    rows.append([f"**{'Total average' if several else 'Average'}**"] + [""] * n_extra + cells_of(list(tasks)))
+    return rows
+
+
+MW_LABELS = ("DP", "DP+HiPolicy", "DP3", "DP3+HiPolicy")
+
+
+def _mw_column(task: str, label: str, steps: int) -> dict[int, dict]:
+    obs = "pointcloud" if label.startswith("DP3") else "state"
+    variant = ("hipolicy" if label.endswith("HiPolicy") else "dp") + f"_t{steps}"
+    return mw_runs(task, obs, variant)
+
+
+@functools.lru_cache(maxsize=None)
+def _published() -> dict:
+    with open(os.path.join(ROOT, "results", "metaworld", "dp3_published.json")) as f:
+        return json.load(f)["tasks"]
+
+
+@functools.lru_cache(maxsize=None)
+def metaworld_expected(tasks: tuple[str, ...], steps: int) -> dict:
+    ts = list(tasks)
+
+    def main_cells(sub):
+        out = [cell([success(_mw_column(t, c, steps)) for t in sub], RATE) for c in MW_LABELS]
+        for new, base in (("DP+HiPolicy", "DP"), ("DP3+HiPolicy", "DP3")):
+            e, _ = paired_est([_mw_column(t, new, steps) for t in sub], [_mw_column(t, base, steps) for t in sub])
+            out.append(paired_text(e, len(sub)))
+        return out
+
+    main = grouped(ts, main_cells, 2, lambda t: [MW_GROUP.get(t.partition(":")[2], DASH), mw_demo_steps(t)])
+
+    def pub(t, key):
+        v = _published().get(t.partition(":")[2], {}).get(key)
+        return DASH if v is None else f"{v[0]:g} ± {v[1]:g}"
+
+    def gap(t, label, key):
+        ours = dp3_metric(_mw_column(t, label, steps))
+        v = _published().get(t.partition(":")[2], {}).get(key)
+        if not ours or v is None or len(ours) < len(SEEDS):
+            return DASH
+        return f"{100 * np.mean([x[0] for x in ours.values()]) - v[0]:+.1f}"
+
+    metric = grouped(ts, lambda sub: [cell([dp3_metric(_mw_column(t, c, steps)) for t in sub], RATE)
+                                      for c in MW_LABELS], 2, lambda t: [pub(t, "dp_image"), pub(t, "dp3")])
+    for row in metric:
+        row += [gap(row[0], c, k) if ":" in row[0] else "" for c, k in (("DP", "dp_image"), ("DP3", "dp3"))]
+    out = {"main": main, "metric": metric}
+    targets = [t for t in ts if t.startswith("metaworld-target:")]
+    if targets:
+        def displaced(t):
+            return mw_runs("metaworld:" + t.partition(":")[2], "state", f"dp_t{steps}")
+
+        def secondary_cells(sub):
+            a, b = [_mw_column(t, "DP", steps) for t in sub], [displaced(t) for t in sub]
+            e, _ = paired_est(a, b)
+            return [cell([success(x) for x in b], RATE), cell([success(x) for x in a], RATE), paired_text(e, len(sub))]
+
+        out["secondary"] = grouped(ts, secondary_cells, 0)
+        order = [t for _, g in _mw_groups(ts) for t in g]
+        speed = speed_rows(order, lambda t, c: _mw_column(t, c, steps), "DP+HiPolicy", "DP")
+        with open(os.path.join(ROOT, "results", "metaworld", "diagnosis", "strided_experts.json")) as f:
+            experts = json.load(f)["tasks"]
+        for row in speed:
+            if row[0] not in order:
+                row += ["", ""]
+                continue
+            by_stride = experts.get(row[0].partition(":")[2], {}).get("target", {})
+            expert = " / ".join(DASH if by_stride.get(s, {}).get("mean_steps") is None
+                                else f"{by_stride[s]['mean_steps']:.1f}" for s in ("1", "2", "3")) if by_stride else DASH
+            path = os.path.join(ROOT, "results", "metaworld", "diagnosis", f"{row[0].partition(':')[2]}_coverage.json")
+            cov = _record(path) or {}
+            row += [expert, f"{cov['mean_steps']:.1f} / {cov['mean_steps_at_bound']:.1f}"
+                    if "mean_steps_at_bound" in cov else DASH]
+        out["speed"] = speed
+    return out
+
+
+MW_MAIN_HEADER = ["Task", "DP3 group", "Demo steps", *MW_LABELS, "DP+HiPolicy − DP (points)",
+                  "DP3+HiPolicy − DP3 (points)"]
+MW_METRIC_HEADER = ["Task", "published DP (image)", "published DP3", *MW_LABELS,
+                    "DP (state) − published DP (image) (points)", "DP3 − published DP3 (points)"]
+MW_SECONDARY = "Amendment 1, secondary: DP on absolute targets against DP on displacements"
+MW_SPEED = "Amendment 1, secondary: steps to success, DP+HiPolicy against DP (targets)"
+METAWORLD_TABLES = {"main": os.path.join("results", "metaworld", "main.md"),
+                    "amendment-1": os.path.join("results", "metaworld", "target", "main.md")}
+
+
+def _mw_inputs(text: str) -> tuple[tuple[str, ...], int]:
+    tasks = tuple(command_arg(text, "--tasks"))
+    steps = int(re.search(r"Training: (\d+) steps", text).group(1))
+    return tasks, steps
+
+
+def check_metaworld_main(root: str = ROOT, table: str = "main") -> int:
+    """The success table (every task row, group average and total: cells, intervals, p, verdicts, demo steps and
+    groups) and DP3's metric beside the published numbers (the gaps included)."""
+    rel = METAWORLD_TABLES[table]
+    text = read(root, rel)
+    tasks, steps = _mw_inputs(text)
+    want, tally, secs = metaworld_expected(tasks, steps), Tally(rel), sections(text)
+    tally.table(one_table(secs, "Meta-World: success rate (%)", rel), MW_MAIN_HEADER, want["main"])
+    tally.table(one_table(secs, "DP3's metric beside DP3's published numbers", rel), MW_METRIC_HEADER, want["metric"])
+    return tally.n
+
+
+def check_metaworld_amendment(root: str = ROOT) -> int:
+    """Amendment 1's secondary comparison and its steps table, every cell."""
+    rel = METAWORLD_TABLES["amendment-1"]
+    text = read(root, rel)
+    tasks, steps = _mw_inputs(text)
+    want, tally, secs = metaworld_expected(tasks, steps), Tally(rel), sections(text)
+    tally.table(one_table(secs, MW_SECONDARY, rel), ["Task", "DP on displacements (%)", "DP on targets (%)",
+                                                    "DP on targets − DP on displacements (points)"], want["secondary"])
+    tally.table(one_table(secs, MW_SPEED, rel),
+                ["Task", "DP SR (%)", "DP+HiPolicy SR (%)", "Success cost (points)", "DP steps", "DP+HiPolicy steps",
+                 "Steps saved (%)", "Expert chunked on targets: steps at stride 1 / 2 / 3",
+                 "Demo steps / at the bound"], want["speed"])
+    return tally.n
