@@ -619,9 +619,10 @@ def _mw_groups(tasks: list[str]) -> list[tuple[str, list[str]]]:
     return groups + [("other", [t for t in tasks if t.partition(":")[2] not in MW_GROUP])]
 
 
-def grouped(tasks: list[str], cells_of, n_extra: int, extra=None) -> list[list[str]]:
-    """Rows per task by DP3 group, each group's average when there are several groups, then the total."""
-    groups = _mw_groups(tasks)
+def grouped(tasks: list[str], cells_of, n_extra: int, extra=None, groups=None) -> list[list[str]]:
+    """Rows per task by group (DP3's groups by default), each group's average when there are several groups, then
+    the total."""
+    groups = _mw_groups(tasks) if groups is None else groups
     several = sum(bool(ts) for _, ts in groups) > 1
     rows = []
     for name, ts in groups:
@@ -748,3 +749,299 @@ def check_metaworld_amendment(root: str = ROOT) -> int:
                  "Steps saved (%)", "Expert chunked on targets: steps at stride 1 / 2 / 3",
                  "Demo steps / at the bound"], want["speed"])
     return tally.n
+
+
+# ---------------------------------------------------------------------------------------------- the CPU tables
+
+def cpu_variant_runs(task: str, obs: str, variant: str, seeds, execution="chunk", guided=True,
+                     percentiles=None) -> dict[int, dict]:
+    out = {}
+    for s in seeds:
+        e = cpu_eval(task, obs, variant, s, execution, guided, percentiles)
+        if e is not None:
+            out[s] = e
+    return out
+
+
+@functools.lru_cache(maxsize=None)
+def cpu_demo_steps(task: str) -> str:
+    """The demos' mean length at the budget's 100 demos, from the first of the task's records that holds it."""
+    for path in sorted(glob.glob(os.path.join(CPU_RECORDS, task, "*", "*", "*.json"))):
+        d = _record(path).get("demos")
+        if d and d.get("episodes") == 100:
+            return f"{d['frames'] / d['episodes']:.0f}"
+    return DASH
+
+
+def precise_groups(tasks) -> list[tuple[str, list[str]]]:
+    return [("precise", [t for t in tasks if PRECISE[t]]), ("non-precise", [t for t in tasks if not PRECISE[t]])]
+
+
+def stride_text(runs: list[dict]) -> str:
+    """The mean over records of each stride's share of the decisions, in %."""
+    keys = sorted({k for e in runs for k in e if k.startswith("stride") and k.endswith("_frac")},
+                  key=lambda k: int(k[6:-5]))
+    if not keys:
+        return DASH
+    return "/".join(f"{100 * np.mean([e.get(k, 0.0) for e in runs]):.0f}" for k in keys)
+
+
+def _regime(text: str) -> str:
+    return command_arg(text, "--regime")[0]
+
+
+def _sfx(regime: str, task: str) -> str:
+    return "" if regime == "r100" else rlow_suffix(task)
+
+
+# label: (obs, variant prefix, execution, guided, seeds)
+TABLE_COLUMNS = {
+    "DP": ("state", "dp", "chunk", True, ALL_SEEDS),
+    "DP+HiPolicy": ("state", "hipolicy", "chunk", True, SEEDS),
+    "DP3": ("pointcloud", "dp", "chunk", True, ALL_SEEDS),
+    "DP3+HiPolicy": ("pointcloud", "hipolicy", "chunk", True, SEEDS),
+    "DP+TE": ("state", "dp", "te", True, ALL_SEEDS),
+    "DP+AAC": ("state", "dp", "aac", True, ALL_SEEDS),
+    "w/o EG": ("state", "hipolicy", "chunk", False, SEEDS),
+    "HiPolicy": ("state", "hipolicy", "chunk", True, SEEDS),
+    "Hier.": ("state", "hipolicy", "chunk", True, SEEDS),
+    "Low": ("state", "cond-low", "chunk", True, SEEDS),
+    "High": ("state", "cond-high", "chunk", True, SEEDS),
+    "w/o Fusion": ("state", "nofusion", "chunk", True, SEEDS),
+    "w/o Hier.": ("state", "dp", "chunk", True, ALL_SEEDS),
+}
+
+
+def table_runs(task: str, label: str, suffix: str, seeds=None) -> dict[int, dict]:
+    obs, variant, execution, guided, column_seeds = TABLE_COLUMNS[label]
+    return cpu_variant_runs(task, obs, variant + suffix, seeds or column_seeds, execution, guided)
+
+
+@functools.lru_cache(maxsize=None)
+def main_expected(tasks: tuple[str, ...], regime: str, obs_types: tuple[str, ...]) -> list[list[str]]:
+    labels = [c for o in obs_types for c in (("DP", "DP+HiPolicy") if o == "state" else ("DP3", "DP3+HiPolicy"))]
+    pairs = [(labels[i + 1], labels[i]) for i in range(0, len(labels), 2)]
+
+    def runs(t, c):
+        return table_runs(t, c, _sfx(regime, t))
+
+    def cells(sub):
+        out = []
+        for c in labels:
+            base = dict(pairs).get(c)
+            out.append(cell([success(runs(t, c)) for t in sub], RATE,
+                            gain_base=None if base is None else [success(runs(t, base)) for t in sub]))
+        for new, base in pairs:
+            e, _ = paired_est([runs(t, new) for t in sub], [runs(t, base) for t in sub])
+            out.append(paired_text(e, len(sub)))
+        return out
+
+    return grouped(list(tasks), cells, 2, lambda t: ["yes" if PRECISE[t] else "no", cpu_demo_steps(t)],
+                   precise_groups(tasks))
+
+
+def check_main(root: str = ROOT, name: str = "main") -> int:
+    """results/main.md / main_rlow.md: every task row, group average and total: success with intervals and the
+    relative gains, the paired differences with p and verdict, the Precise and Demo steps columns."""
+    rel = os.path.join("results", f"{name}.md")
+    text = read(root, rel)
+    tasks, obs = tuple(command_arg(text, "--tasks")), tuple(command_arg(text, "--obs-types"))
+    rows = main_expected(tasks, _regime(text), obs)
+    labels = [c for o in obs for c in (("DP", "DP+HiPolicy") if o == "state" else ("DP3", "DP3+HiPolicy"))]
+    header = ["Task", "Precise", "Demo steps", *labels,
+              *(f"{labels[i + 1]} − {labels[i]} (points)" for i in range(0, len(labels), 2))]
+    tally = Tally(rel)
+    tally.table(one_table(sections(text), "Main results: success rate (%)", rel), header, rows)
+    return tally.n
+
+
+EXECUTION_LABELS = ("DP", "DP+TE", "DP+AAC", "w/o EG", "HiPolicy")
+
+
+@functools.lru_cache(maxsize=None)
+def execution_expected(tasks: tuple[str, ...], regime: str) -> list[list[str]]:
+    def runs(t, c):
+        return table_runs(t, c, _sfx(regime, t))
+
+    rows = []
+    for sub in [[t] for t in tasks] + ([list(tasks)] if len(tasks) > 1 else []):
+        row = [sub[0] if len(sub) == 1 else "**Average**"]
+        for c in EXECUTION_LABELS:
+            row += [cell([success(runs(t, c)) for t in sub], RATE), cell([steps(runs(t, c)) for t in sub], COUNT, 1.0),
+                    cell([decisions(runs(t, c)) for t in sub], COUNT, 1.0)]
+        hip = [runs(t, "HiPolicy") for t in sub]
+        row.append(stride_text([e for r in hip for e in r.values()]) if all(hip) else DASH)
+        for base in ("DP+TE", "DP+AAC", "DP"):
+            for t in sub:
+                if TABLE_COLUMNS[base][:2] == TABLE_COLUMNS["HiPolicy"][:2]:
+                    check_network(runs(t, "HiPolicy"), runs(t, base), (t, base))
+            e, _ = paired_est(hip, [runs(t, base) for t in sub])
+            row.append(paired_text(e, len(sub)))
+        rows.append(row)
+    return rows
+
+
+def check_execution(root: str = ROOT, name: str = "execution") -> int:
+    """results/execution.md / execution_rlow.md: SR, steps and decisions of every strategy, the strides and the
+    three paired columns, per task and on average."""
+    rel = os.path.join("results", f"{name}.md")
+    text = read(root, rel)
+    header = ["Task", *(f"{c} {m}" for c in EXECUTION_LABELS for m in ("SR", "Steps", "Decisions")),
+              "HiPolicy strides (%)", "HiPolicy − DP+TE (points)", "HiPolicy − DP+AAC (points)",
+              "HiPolicy − DP (points)"]
+    tally = Tally(rel)
+    tally.table(one_table(sections(text), "Execution strategies: success rate (%), steps to success and decisions",
+                          rel), header, execution_expected(tuple(command_arg(text, "--tasks")), _regime(text)))
+    return tally.n
+
+
+ABLATION_LABELS = ("Hier.", "Low", "High", "w/o Fusion", "w/o Hier.")
+
+
+@functools.lru_cache(maxsize=None)
+def ablation_expected(tasks: tuple[str, ...], regime: str) -> list[list[str]]:
+    def runs(t, c):
+        return table_runs(t, c, _sfx(regime, t))
+
+    def cells(sub):
+        e, _ = paired_est([runs(t, "Hier.") for t in sub], [runs(t, "w/o Hier.") for t in sub])
+        return [cell([success(runs(t, c)) for t in sub], RATE) for c in ABLATION_LABELS] + [paired_text(e, len(sub))]
+
+    return grouped(list(tasks), cells, 0, None, precise_groups(tasks))
+
+
+def check_ablation(root: str = ROOT) -> int:
+    rel = os.path.join("results", "ablation_rlow.md")
+    text = read(root, rel)
+    tally = Tally(rel)
+    tally.table(one_table(sections(text), "Ablation: success rate (%)", rel),
+                ["Task", *ABLATION_LABELS, "Hier. − w/o Hier. (points)"],
+                ablation_expected(tuple(command_arg(text, "--tasks")), _regime(text)))
+    return tally.n
+
+
+@functools.lru_cache(maxsize=None)
+def hparams_expected(tasks: tuple[str, ...], regime: str, triples: tuple[tuple[int, int, int], ...]):
+    rows = []
+    for lh, lc, m in triples:
+        changes = [f"lh{lh}"] * (lh != 3) + [f"lc{lc}"] * (lc != 8)
+        if m == 1 and not changes:
+            prefix, seeds = "dp", ALL_SEEDS
+        else:
+            assert m == 3 and len(changes) <= 1, (lh, lc, m)
+            prefix, seeds = (changes[0] if changes else "hipolicy"), SEEDS
+        per = [success(cpu_variant_runs(t, "state", prefix + _sfx(regime, t), seeds)) for t in tasks]
+        rows.append([f"{lh}{' (default)' if (lh, lc, m) == (3, 8, 3) else ''}", str(lc), str(m),
+                     *(cell([g], RATE) for g in per)] + ([cell(per, RATE)] if len(tasks) > 1 else []))
+    return rows
+
+
+def check_hparams(root: str = ROOT) -> int:
+    rel = os.path.join("results", "hparams_rlow.md")
+    text = read(root, rel)
+    tasks, numbers = tuple(command_arg(text, "--tasks")), [int(x) for x in command_arg(text, "--rows")]
+    triples = tuple(tuple(numbers[i:i + 3]) for i in range(0, len(numbers), 3))
+    tally = Tally(rel)
+    tally.table(one_table(sections(text), "Hyper-parameter ablation: success rate (%)", rel),
+                ["L_h", "L_c", "M", *tasks] + (["Average"] if len(tasks) > 1 else []),
+                hparams_expected(tasks, _regime(text), triples))
+    return tally.n
+
+
+@functools.lru_cache(maxsize=None)
+def thresholds_expected(tasks: tuple[str, ...], regime: str, pairs: tuple[tuple[float, float], ...]):
+    rows = []
+    for t in tasks:
+        columns = [(f"p{a:g}/p{b:g}", True, [float(a), float(b)]) for a, b in pairs] + [("always stride 1", False, None)]
+        for label, guided, percentiles in columns:
+            runs = cpu_variant_runs(t, "state", "hipolicy" + _sfx(regime, t), SEEDS, "chunk", guided, percentiles)
+            th = [e["thresholds"] for e in runs.values() if e.get("thresholds")]
+            th_cell = ("{" + ", ".join(f"{np.mean([x[k] for x in th]):.2f}" for k in range(1, len(th[0]) - 1)) + "}"
+                       if th else DASH)
+            rows.append([t, label, th_cell, cell([success(runs)], RATE), cell([steps(runs)], COUNT, 1.0),
+                         stride_text(list(runs.values()))])
+    return rows
+
+
+def check_thresholds(root: str = ROOT) -> int:
+    rel = os.path.join("results", "thresholds_rlow.md")
+    text = read(root, rel)
+    numbers = [float(x) for x in command_arg(text, "--pairs")]
+    pairs = tuple((numbers[i], numbers[i + 1]) for i in range(0, len(numbers), 2))
+    tally = Tally(rel)
+    tally.table(one_table(sections(text), "Entropy thresholds ablation", rel),
+                ["Task", "Percentiles", "Thresholds", "SR (%)", "Steps", "Strides 1/2/3 (%)"],
+                thresholds_expected(tuple(command_arg(text, "--tasks")), _regime(text), pairs))
+    return tally.n
+
+
+@functools.lru_cache(maxsize=None)
+def budget_expected(tasks: tuple[str, ...], budget_steps: tuple[int, ...]):
+    rows, gaps = [], {}
+    for t in tasks:
+        for n in budget_steps:
+            sfx = "" if n == 2000 else f"_t{n}"
+            dp, hip = (table_runs(t, c, sfx, SEEDS) for c in ("DP", "DP+HiPolicy"))
+            e, _ = paired_est([hip], [dp])
+            gaps[t, n] = e
+            rows.append([t, f"{n:,}" + (" (budget)" if n == 2000 else ""), cell([success(dp)], RATE),
+                         cell([success(hip)], RATE), cell([steps(dp)], COUNT, 1.0), cell([steps(hip)], COUNT, 1.0),
+                         paired_text(e)])
+    lo, hi = min(budget_steps), max(budget_steps)
+    parts = [f"{t}: {DASH if gaps[t, lo] is None else iv(gaps[t, lo], signed=True)} at {lo:,} steps, "
+             f"{DASH if gaps[t, hi] is None else iv(gaps[t, hi], signed=True)} at {hi:,}: "
+             f"**{gap_trend(gaps[t, lo], gaps[t, hi])}**" for t in tasks]
+    answer = (f"**The answer** (`results/PROTOCOL.md`'s rule, fixed before the runs: the gap shrinks or grows when "
+              f"its t interval at {hi:,} steps excludes the {lo:,}-step point estimate, else it holds; '–' while "
+              f"{hi:,} steps have fewer than 2 paired seeds): " + "; ".join(parts) + ".")
+    return rows, answer
+
+
+def check_budget(root: str = ROOT) -> int:
+    rel = os.path.join("results", "budget.md")
+    text = read(root, rel)
+    rows, answer = budget_expected(tuple(command_arg(text, "--tasks")),
+                                   tuple(int(x) for x in command_arg(text, "--steps")))
+    tally = Tally(rel)
+    tally.table(one_table(sections(text), "Training-budget sensitivity: DP vs DP+HiPolicy", rel),
+                ["Task", "Training steps", "DP SR (%)", "DP+HiPolicy SR (%)", "DP steps", "DP+HiPolicy steps",
+                 "DP+HiPolicy − DP (points)"], rows)
+    tally.text(text, answer)
+    return tally.n
+
+
+# ------------------------------------------------------------------------------------------- the README's copies
+
+README_COPIES = ("results/metaworld/main.md", "results/metaworld/target/main.md", "results/findings.md",
+                 "results/main.md", "results/execution.md", "results/main_rlow.md", "results/execution_rlow.md",
+                 "results/ablation_rlow.md", "results/thresholds_rlow.md", "results/hparams_rlow.md",
+                 "results/budget.md")
+_COPY = re.compile(r"^(#+) .* — `(results/[^`]+\.md)`$")
+
+
+def check_readme_copies(root: str = ROOT) -> int:
+    """Each table file the README copies (between its generated-section markers) is there, line for line: its title
+    one heading level down and named by its path, its notes, cost line and tables as the file holds them (which the
+    checks above recompute), then its plot."""
+    lines = read(root, "README.md").splitlines()
+    starts = [(i, m.group(1), m.group(2)) for i, line in enumerate(lines) if (m := _COPY.match(line))]
+    assert sorted(p for _, _, p in starts) == sorted(README_COPIES), (
+        f"README.md copies {[p for _, _, p in starts]}, expected {list(README_COPIES)}")
+    n = 0
+    for k, (i, hashes, rel) in enumerate(starts):
+        level = len(hashes)
+        source = read(root, rel).strip().splitlines()
+        want = ["#" * (level - 1) + line if line.startswith("#") else line for line in source]
+        want[0] = f"{want[0]} — `{rel}`"
+        got = lines[i:i + len(want)]
+        for j, (g, w) in enumerate(zip(got, want)):
+            assert g == w, f"README.md line {i + j + 1}, the copy of {rel}: {g!r} where {rel} has {w!r}"
+            n += 1
+        assert len(got) == len(want), f"README.md: the copy of {rel} ends early"
+        rest = lines[i + len(want):]
+        end = next((j for j, line in enumerate(rest) if line.strip()), None)
+        png = rel[:-3] + ".png"
+        if os.path.exists(os.path.join(ROOT, png)):
+            assert end is not None and rest[end] == f"![{os.path.basename(png)}]({png})", (
+                f"README.md: the copy of {rel} is not followed by its plot, {png}: {rest[end] if end is not None else ''!r}")
+    return n
