@@ -281,6 +281,33 @@ def command_arg(text: str, flag: str) -> list[str]:
 
 # ------------------------------------------------------------------------------------------------ the CPU records
 
+RUN_OF: dict[int, str] = {}  # id of an evaluation (cached, so alive) → its run's record
+
+
+def cost_line(evaluations: list[dict]) -> str:
+    """A table's cost line: each distinct run's training and each evaluation in CPU-seconds, the measured process
+    CPU time where the record has it, else wall time × the cores its process ran on (2 where unsaid)."""
+    def cpu(wall, cores, measured):
+        return measured if measured is not None else (wall or 0.0) * (cores or 2)
+
+    train, measured_runs = {}, set()
+    for e in evaluations:
+        path = RUN_OF[id(e)]
+        t = _record(path).get("training") or {}
+        train[path] = cpu(t.get("wall_time_s"), t.get("cpu_cores"), t.get("cpu_time_s"))
+        if t.get("cpu_time_s") is not None:
+            measured_runs.add(path)
+    evals = [cpu(e.get("eval_s"), e.get("cpu_cores"), e.get("eval_cpu_s")) for e in evaluations]
+    measured = sum(e.get("eval_cpu_s") is not None for e in evaluations)
+    th, eh = sum(train.values()) / 3600, sum(evals) / 3600
+    how = ("(measured process CPU time)" if len(measured_runs) == len(train) and measured == len(evals) else
+           f"(process CPU time of {len(measured_runs)} of {len(train)} runs and {measured} of {len(evals)} "
+           f"evaluations, wall time × the cores its process ran on for the rest: an upper bound, other jobs on "
+           f"those cores count too)")
+    return (f"- Cost: {th + eh:.1f} CPU-hours on this 2-core machine kind ({th:.1f} h training {len(train)} runs, "
+            f"{eh:.1f} h evaluating), from the records {how}.")
+
+
 @functools.lru_cache(maxsize=None)
 def _record(path: str) -> dict | None:
     if not os.path.exists(path):
@@ -310,6 +337,8 @@ def cpu_eval(task, obs, variant, seed, execution="chunk", guided=True, percentil
                 and s.get("sampler", "auto") == "auto"):
             found.append(e)
     assert len(found) <= 1, f"{task}/{obs}/{variant}/seed{seed}: {len(found)} evaluations match"
+    if found:
+        RUN_OF[id(found[0])] = os.path.join(CPU_RECORDS, task, obs, variant, f"seed{seed}.json")
     return found[0] if found else None
 
 
@@ -591,6 +620,7 @@ def mw_runs_cached(task: str, obs: str, variant: str) -> tuple:
         main = [e for k, e in record["evaluations"].items()
                 if json.loads(k)["guided"] and json.loads(k)["execution"] == "chunk" and json.loads(k)["episodes"] == 100]
         assert len(main) == 1, (task, obs, variant, seed)
+        RUN_OF[id(main[0])] = os.path.join(mw_dir(task), obs, variant, f"seed{seed}.json")
         out.append((seed, main[0]))
     return tuple(out)
 
@@ -677,7 +707,8 @@ def metaworld_expected(tasks: tuple[str, ...], steps: int) -> dict:
                                       for c in MW_LABELS], 2, lambda t: [pub(t, "dp_image"), pub(t, "dp3")])
     for row in metric:
         row += [gap(row[0], c, k) if ":" in row[0] else "" for c, k in (("DP", "dp_image"), ("DP3", "dp3"))]
-    out = {"main": main, "metric": metric}
+    out = {"main": main, "metric": metric,
+           "cost": cost_line([e for t in ts for c in MW_LABELS for e in _mw_column(t, c, steps).values()])}
     targets = [t for t in ts if t.startswith("metaworld-target:")]
     if targets:
         def displaced(t):
@@ -733,6 +764,7 @@ def check_metaworld_main(root: str = ROOT, table: str = "main") -> int:
     want, tally, secs = metaworld_expected(tasks, steps), Tally(rel), sections(text)
     tally.table(one_table(secs, "Meta-World: success rate (%)", rel), MW_MAIN_HEADER, want["main"])
     tally.table(one_table(secs, "DP3's metric beside DP3's published numbers", rel), MW_METRIC_HEADER, want["metric"])
+    tally.text(text, want["cost"])
     return tally.n
 
 
@@ -836,8 +868,9 @@ def main_expected(tasks: tuple[str, ...], regime: str, obs_types: tuple[str, ...
             out.append(paired_text(e, len(sub)))
         return out
 
-    return grouped(list(tasks), cells, 2, lambda t: ["yes" if PRECISE[t] else "no", cpu_demo_steps(t)],
-                   precise_groups(tasks))
+    return (grouped(list(tasks), cells, 2, lambda t: ["yes" if PRECISE[t] else "no", cpu_demo_steps(t)],
+                    precise_groups(tasks)),
+            cost_line([e for t in tasks for c in labels for e in runs(t, c).values()]))
 
 
 def check_main(root: str = ROOT, name: str = "main") -> int:
@@ -846,12 +879,13 @@ def check_main(root: str = ROOT, name: str = "main") -> int:
     rel = os.path.join("results", f"{name}.md")
     text = read(root, rel)
     tasks, obs = tuple(command_arg(text, "--tasks")), tuple(command_arg(text, "--obs-types"))
-    rows = main_expected(tasks, _regime(text), obs)
+    rows, cost = main_expected(tasks, _regime(text), obs)
     labels = [c for o in obs for c in (("DP", "DP+HiPolicy") if o == "state" else ("DP3", "DP3+HiPolicy"))]
     header = ["Task", "Precise", "Demo steps", *labels,
               *(f"{labels[i + 1]} − {labels[i]} (points)" for i in range(0, len(labels), 2))]
     tally = Tally(rel)
     tally.table(one_table(sections(text), "Main results: success rate (%)", rel), header, rows)
+    tally.text(text, cost)
     return tally.n
 
 
@@ -878,7 +912,7 @@ def execution_expected(tasks: tuple[str, ...], regime: str) -> list[list[str]]:
             e, _ = paired_est(hip, [runs(t, base) for t in sub])
             row.append(paired_text(e, len(sub)))
         rows.append(row)
-    return rows
+    return rows, cost_line([e for t in tasks for c in EXECUTION_LABELS for e in runs(t, c).values()])
 
 
 def check_execution(root: str = ROOT, name: str = "execution") -> int:
@@ -890,8 +924,10 @@ def check_execution(root: str = ROOT, name: str = "execution") -> int:
               "HiPolicy strides (%)", "HiPolicy − DP+TE (points)", "HiPolicy − DP+AAC (points)",
               "HiPolicy − DP (points)"]
     tally = Tally(rel)
+    rows, cost = execution_expected(tuple(command_arg(text, "--tasks")), _regime(text))
     tally.table(one_table(sections(text), "Execution strategies: success rate (%), steps to success and decisions",
-                          rel), header, execution_expected(tuple(command_arg(text, "--tasks")), _regime(text)))
+                          rel), header, rows)
+    tally.text(text, cost)
     return tally.n
 
 
@@ -907,22 +943,24 @@ def ablation_expected(tasks: tuple[str, ...], regime: str) -> list[list[str]]:
         e, _ = paired_est([runs(t, "Hier.") for t in sub], [runs(t, "w/o Hier.") for t in sub])
         return [cell([success(runs(t, c)) for t in sub], RATE) for c in ABLATION_LABELS] + [paired_text(e, len(sub))]
 
-    return grouped(list(tasks), cells, 0, None, precise_groups(tasks))
+    return (grouped(list(tasks), cells, 0, None, precise_groups(tasks)),
+            cost_line([e for t in tasks for c in ABLATION_LABELS for e in runs(t, c).values()]))
 
 
 def check_ablation(root: str = ROOT) -> int:
     rel = os.path.join("results", "ablation_rlow.md")
     text = read(root, rel)
     tally = Tally(rel)
+    rows, cost = ablation_expected(tuple(command_arg(text, "--tasks")), _regime(text))
     tally.table(one_table(sections(text), "Ablation: success rate (%)", rel),
-                ["Task", *ABLATION_LABELS, "Hier. − w/o Hier. (points)"],
-                ablation_expected(tuple(command_arg(text, "--tasks")), _regime(text)))
+                ["Task", *ABLATION_LABELS, "Hier. − w/o Hier. (points)"], rows)
+    tally.text(text, cost)
     return tally.n
 
 
 @functools.lru_cache(maxsize=None)
 def hparams_expected(tasks: tuple[str, ...], regime: str, triples: tuple[tuple[int, int, int], ...]):
-    rows = []
+    rows, evaluations = [], []
     for lh, lc, m in triples:
         changes = [f"lh{lh}"] * (lh != 3) + [f"lc{lc}"] * (lc != 8)
         if m == 1 and not changes:
@@ -930,10 +968,12 @@ def hparams_expected(tasks: tuple[str, ...], regime: str, triples: tuple[tuple[i
         else:
             assert m == 3 and len(changes) <= 1, (lh, lc, m)
             prefix, seeds = (changes[0] if changes else "hipolicy"), SEEDS
-        per = [success(cpu_variant_runs(t, "state", prefix + _sfx(regime, t), seeds)) for t in tasks]
+        runs = [cpu_variant_runs(t, "state", prefix + _sfx(regime, t), seeds) for t in tasks]
+        evaluations += [e for r in runs for e in r.values()]
+        per = [success(r) for r in runs]
         rows.append([f"{lh}{' (default)' if (lh, lc, m) == (3, 8, 3) else ''}", str(lc), str(m),
                      *(cell([g], RATE) for g in per)] + ([cell(per, RATE)] if len(tasks) > 1 else []))
-    return rows
+    return rows, cost_line(evaluations)
 
 
 def check_hparams(root: str = ROOT) -> int:
@@ -942,25 +982,27 @@ def check_hparams(root: str = ROOT) -> int:
     tasks, numbers = tuple(command_arg(text, "--tasks")), [int(x) for x in command_arg(text, "--rows")]
     triples = tuple(tuple(numbers[i:i + 3]) for i in range(0, len(numbers), 3))
     tally = Tally(rel)
+    rows, cost = hparams_expected(tasks, _regime(text), triples)
     tally.table(one_table(sections(text), "Hyper-parameter ablation: success rate (%)", rel),
-                ["L_h", "L_c", "M", *tasks] + (["Average"] if len(tasks) > 1 else []),
-                hparams_expected(tasks, _regime(text), triples))
+                ["L_h", "L_c", "M", *tasks] + (["Average"] if len(tasks) > 1 else []), rows)
+    tally.text(text, cost)
     return tally.n
 
 
 @functools.lru_cache(maxsize=None)
 def thresholds_expected(tasks: tuple[str, ...], regime: str, pairs: tuple[tuple[float, float], ...]):
-    rows = []
+    rows, evaluations = [], []
     for t in tasks:
         columns = [(f"p{a:g}/p{b:g}", True, [float(a), float(b)]) for a, b in pairs] + [("always stride 1", False, None)]
         for label, guided, percentiles in columns:
             runs = cpu_variant_runs(t, "state", "hipolicy" + _sfx(regime, t), SEEDS, "chunk", guided, percentiles)
+            evaluations += list(runs.values())
             th = [e["thresholds"] for e in runs.values() if e.get("thresholds")]
             th_cell = ("{" + ", ".join(f"{np.mean([x[k] for x in th]):.2f}" for k in range(1, len(th[0]) - 1)) + "}"
                        if th else DASH)
             rows.append([t, label, th_cell, cell([success(runs)], RATE), cell([steps(runs)], COUNT, 1.0),
                          stride_text(list(runs.values()))])
-    return rows
+    return rows, cost_line(evaluations)
 
 
 def check_thresholds(root: str = ROOT) -> int:
@@ -969,19 +1011,21 @@ def check_thresholds(root: str = ROOT) -> int:
     numbers = [float(x) for x in command_arg(text, "--pairs")]
     pairs = tuple((numbers[i], numbers[i + 1]) for i in range(0, len(numbers), 2))
     tally = Tally(rel)
+    rows, cost = thresholds_expected(tuple(command_arg(text, "--tasks")), _regime(text), pairs)
     tally.table(one_table(sections(text), "Entropy thresholds ablation", rel),
-                ["Task", "Percentiles", "Thresholds", "SR (%)", "Steps", "Strides 1/2/3 (%)"],
-                thresholds_expected(tuple(command_arg(text, "--tasks")), _regime(text), pairs))
+                ["Task", "Percentiles", "Thresholds", "SR (%)", "Steps", "Strides 1/2/3 (%)"], rows)
+    tally.text(text, cost)
     return tally.n
 
 
 @functools.lru_cache(maxsize=None)
 def budget_expected(tasks: tuple[str, ...], budget_steps: tuple[int, ...]):
-    rows, gaps = [], {}
+    rows, gaps, evaluations = [], {}, []
     for t in tasks:
         for n in budget_steps:
             sfx = "" if n == 2000 else f"_t{n}"
             dp, hip = (table_runs(t, c, sfx, SEEDS) for c in ("DP", "DP+HiPolicy"))
+            evaluations += [*dp.values(), *hip.values()]
             e, _ = paired_est([hip], [dp])
             gaps[t, n] = e
             rows.append([t, f"{n:,}" + (" (budget)" if n == 2000 else ""), cell([success(dp)], RATE),
@@ -994,19 +1038,20 @@ def budget_expected(tasks: tuple[str, ...], budget_steps: tuple[int, ...]):
     answer = (f"**The answer** (`results/PROTOCOL.md`'s rule, fixed before the runs: the gap shrinks or grows when "
               f"its t interval at {hi:,} steps excludes the {lo:,}-step point estimate, else it holds; '–' while "
               f"{hi:,} steps have fewer than 2 paired seeds): " + "; ".join(parts) + ".")
-    return rows, answer
+    return rows, answer, cost_line(evaluations)
 
 
 def check_budget(root: str = ROOT) -> int:
     rel = os.path.join("results", "budget.md")
     text = read(root, rel)
-    rows, answer = budget_expected(tuple(command_arg(text, "--tasks")),
+    rows, answer, cost = budget_expected(tuple(command_arg(text, "--tasks")),
                                    tuple(int(x) for x in command_arg(text, "--steps")))
     tally = Tally(rel)
     tally.table(one_table(sections(text), "Training-budget sensitivity: DP vs DP+HiPolicy", rel),
                 ["Task", "Training steps", "DP SR (%)", "DP+HiPolicy SR (%)", "DP steps", "DP+HiPolicy steps",
                  "DP+HiPolicy − DP (points)"], rows)
     tally.text(text, answer)
+    tally.text(text, cost)
     return tally.n
 
 
