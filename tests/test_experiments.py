@@ -340,13 +340,32 @@ def test_budget_table_and_its_figure_of_success_and_steps(tmp_path, monkeypatch)
     np.testing.assert_allclose(top_left[1][0], dp_success, atol=0.051)  # DP's success on press_button
     np.testing.assert_allclose(bottom_right[1][1], hip_steps, atol=0.051)  # DP+HiPolicy's steps on stack_cubes
     answer = [line for line in text.splitlines() if line.startswith("**The answer**")]
-    assert len(answer) == 1 and "press_button: " in answer[0] and "stack_cubes: " in answer[0], text
-    for task in ("press_button", "stack_cubes"):  # each task's answer is the rule applied to its two table cells
-        first, last = (report.paired(tables.budget_records(fake, n, default), (0, 1, 2), [task], "DP+HiPolicy",
-                                     "DP") for n in (default, longer))
-        assert f"{task}: {report.interval_text(first.diff, 100.0, signed=True)} at {default:,} steps, " \
-               f"{report.interval_text(last.diff, 100.0, signed=True)} at {longer:,}: " \
-               f"**{report.gap_trend(first, last)}**" in answer[0]
+    assert len(answer) == 1, text
+
+    def gap(task, n):
+        """DP+HiPolicy − DP written again with numpy / scipy: per seed the mean per-episode success difference, the
+        mean over seeds with scipy's one-sample t interval (clipped to ±1) and p → (mean, low, high, cell text)."""
+        regime = {} if n == default else {"train.num_steps": n}
+        by = {(r["column"], r["seed"]): np.asarray(r["success"], float) for r in fake
+              if r["task"] == task and r.get("regime", {}) == regime}
+        values = np.array([(by["DP+HiPolicy", s] - by["DP", s]).mean() for s in (0, 1, 2)])
+        assert np.ptp(values) > 0  # (equal seeds would take the episode-level error instead)
+        test = scipy_stats.ttest_1samp(values, 0.0)
+        ci = test.confidence_interval(0.95)
+        mean, low, high = values.mean(), max(ci.low, -1.0), min(ci.high, 1.0)
+        word = "wins" if low > 0 else "loses" if high < 0 else "ties"
+        return mean, low, high, f"{100 * mean:+.1f} [{100 * low:+.1f}, {100 * high:+.1f}]", \
+            f"p={test.pvalue:.2g} ({word})"
+
+    parts = []
+    for task in ("press_button", "stack_cubes"):  # each task's answer is the protocol's rule on its two gaps
+        (m0, _, _, first, p0), (m1, lo1, hi1, last, p1) = gap(task, default), gap(task, longer)
+        for n, cell, p in ((default, first, p0), (longer, last, p1)):
+            row = rows[(f"| {task}", f"{n:,}" + (" (budget)" if n == default else ""))]
+            assert row[6].rstrip(" |") == f"{cell}, {p}", (task, n, row[6])
+        trend = "holds" if lo1 <= m0 <= hi1 else "shrinks" if abs(m1) < abs(m0) else "grows"
+        parts.append(f"{task}: {first} at {default:,} steps, {last} at {longer:,}: **{trend}**")
+    assert answer[0].endswith("): " + "; ".join(parts) + "."), (answer[0], parts)
 
 
 def test_gap_trend_follows_the_protocols_rule():

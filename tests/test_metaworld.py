@@ -646,19 +646,32 @@ def test_amendment_section_pairs_targets_with_displacements_and_counts_steps_sav
                                                           "mean_steps_at_bound": 61.84})
     text = amendment_section(args, records, displaced, [("hard", [t]), ("medium", [other])], diagnosis=str(tmp_path))
     first, second = text.split("## Amendment 1, secondary: steps to success")
-    row = first.split(f"| {t} | ")[1].split("\n")[0].split(" | ")
-    assert row[0].startswith("50.0") and row[1].startswith("87.5 [")  # 2/4 and 2/4 on displacements; 4/4 and 3/4 on targets
-    assert row[2].startswith("+37.5 [")  # per seed (0 + 1 + 1 + 0) / 4 and (1 + 0 + 0 + 0) / 4
-    assert first.split(f"| {other} | ")[1].split("\n")[0].strip(" |").split(" | ") == ["–", "–", "–"]
-    cells = second.split(f"| {t} | ")[1].split("\n")[0].split(" | ")
-    # seed 0: both succeed in episodes 0-2, DP's mean 280 / 3 steps, DP+HiPolicy saves 140 / 3: 50 %; seed 1:
-    # episodes 0, 2, 3, DP's mean 230 / 3, saved 100 / 3: 43.48 %; mean 46.7 %
-    assert cells[0] == row[1] and cells[1].startswith("75.0") and cells[2].startswith("-12.5 [")
-    assert cells[-3].startswith("+46.7 [") and "p=" in cells[-3]
-    assert cells[-2:] == ["89.8 / 70.2 / –", "79.2 / 61.8 |"]  # the target space's (none succeeded at stride 3)
-    assert second.split(f"| {other} | ")[1].split("\n")[0].strip(" |").split(" | ")[-3:] == ["–", "–", "–"]
-    average = second.split("| **Average** | ")[1].split("\n")[0]
-    assert [c.strip() for c in average.split("|")][-3:] == ["", "", ""]  # per task only
+
+    def rows(section):
+        return [[c.strip() for c in line.strip()[1:-1].split("|")] for line in section.splitlines()
+                if line.startswith("| ") and not line.startswith("| Task") and not line.startswith("| :")]
+
+    # Two seeds: the 95 % t interval's half-width is tan(0.475 pi) * se = 12.706 se (Student's t with 1 degree of
+    # freedom is Cauchy), se = |v0 - v1| / 2, p = 1 - 2 atan(|mean| / se) / pi; with equal seed values the
+    # episode-level se = sqrt(sum of var(ddof=1) / 4) / 2. Rates clip to [0, 100], differences to [-100, +100].
+    # DP on displacements: 2/4 and 2/4, se = sqrt(2 (1/3) / 4) / 2 = 0.204 -> [-209.4, +309.4] -> [0.0, 100.0].
+    # DP on targets: 4/4 and 3/4, mean 87.5, se 12.5 -> [-71.3, +246.3] -> [0.0, 100.0].
+    # targets - displacements per seed: (0 + 1 + 1 + 0) / 4 and (1 + 0 + 0 + 0) / 4: +37.5, se 12.5, t = 3,
+    # p = 1 - 2 atan(3) / pi = 0.2048 -> 0.2, ties.
+    cells = ["50.0 [0.0, 100.0]", "87.5 [0.0, 100.0]", "+37.5 [-100.0, +100.0], p=0.2 (ties)"]
+    assert rows(first) == [[t, *cells], ["**Average (hard)**", *cells], [other, "–", "–", "–"],
+                           ["**Average (medium)**", "–", "–", "–"], ["**Total average**", "–", "–", "–"]]
+    # steps: DP+HiPolicy 3/4 and 3/4 (equal: se = sqrt(2 (1/4) / 4) / 2 = 0.177 -> [-149.6, ...] -> [0, 100]);
+    # success cost per seed -1/4 and 0: -12.5, se 12.5 -> clipped to [-100, +100], ties.
+    # DP's steps to success: seed 0 (100 + 100 + 80 + 90) / 4 = 92.5, seed 1 (60 + 80 + 90) / 3 = 76.67: 84.58,
+    # se 7.917, half-width 100.59 -> [0.0, 185.2]; DP+HiPolicy's: 140/3 and 130/3: 45.0, se 1.667 -> [23.8, 66.2].
+    # Saved, over the episodes both succeeded in: seed 0 (episodes 0-2) (280 - 140) / 280 = 0.5, seed 1 (episodes
+    # 0, 2, 3) (230 - 130) / 230 = 0.4348: +46.74, se 3.261 -> [+5.3, +88.2]; t = 14.33, p = 0.0443 -> faster.
+    assert rows(second) == [
+        [t, "87.5 [0.0, 100.0]", "75.0 [0.0, 100.0]", "-12.5 [-100.0, +100.0] (ties)", "84.6 [0.0, 185.2]",
+         "45.0 [23.8, 66.2]", "+46.7 [+5.3, +88.2], p=0.044 (faster)", "89.8 / 70.2 / –", "79.2 / 61.8"],
+        [other, "–", "–", "–", "–", "–", "–", "–", "–"],  # no records, no diagnosis files
+        ["**Average**", "–", "–", "–", "–", "–", "–", "", ""]]  # a task without records: no average; per task only
     assert displacement_records(MainArgs(tasks=("assembly",))) is None  # a table on displacements has none
 
 

@@ -197,12 +197,18 @@ def test_single_frequency_decision_draws_sample_zero_alone(execution, drawn):
     args = PolicyArgs({"w": jnp.float32(0.5), "v": jnp.float32(0.3)}, AffineNormalizer(jnp.float32(2.0)))
     history = {"state": jnp.arange(cfg.chunk.obs_span * 5, dtype=jnp.float32).reshape(cfg.chunk.obs_span, 5) / 50}
     decision = make_decision_fn(net, cfg, 2, inference)(history, key, args)
-    full = make_decision_fn(net, cfg, 2, InferenceConfig(num_samples=16, sampler="ddpm", num_steps=10,
-                                                         execution="aac"))(history, key, args)
-    assert decision.chunks.shape == (drawn, 4, 2) and full.chunks.shape == (16, 4, 2)
-    np.testing.assert_allclose(np.asarray(decision.actions), np.asarray(full.actions), rtol=1e-6, atol=1e-6)
-    np.testing.assert_allclose(np.asarray(decision.chunks[0]), np.asarray(full.chunks[0]), rtol=1e-6, atol=1e-6)
+    # the reference is the other draw: N = 16 (AAC) for a decision that draws sample 0 alone, N = 1 (whole chunks)
+    # for AAC's N = 16 decision; sample 0 is the same either way
+    other = "aac" if drawn == 1 else "chunk"
+    reference = make_decision_fn(net, cfg, 2, InferenceConfig(num_samples=16, sampler="ddpm", num_steps=10,
+                                                              execution=other))(history, key, args)
+    assert decision.chunks.shape == (drawn, 4, 2) and reference.chunks.shape == (17 - drawn, 4, 2)
+    np.testing.assert_allclose(np.asarray(decision.actions), np.asarray(reference.actions), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(decision.chunks[0]), np.asarray(reference.chunks[0]), rtol=1e-6, atol=1e-6)
+    many = decision if drawn == 16 else reference
+    assert np.all(np.asarray(many.chunks).std(axis=0) > 1e-3)  # N = 16 different samples, not one repeated
     assert np.isnan(float(decision.entropy)) == (drawn == 1)
+    assert np.isnan(float(reference.entropy)) == (drawn == 16)
     several = make_decision_fn(net, _cfg(), 2, inference)(
         {"state": jnp.zeros((_cfg().chunk.obs_span, 5))}, key, args)
     assert several.chunks.shape[0] == 16
