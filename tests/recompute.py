@@ -284,12 +284,17 @@ def command_arg(text: str, flag: str) -> list[str]:
 RUN_OF: dict[int, str] = {}  # id of an evaluation (cached, so alive) → its run's record
 
 
-def cost_line(evaluations: list[dict]) -> str:
+TABLE_EVALUATIONS: dict[str, dict[int, dict]] = {}  # per table, the evaluations its cells read (by id)
+
+
+def cost_line(evaluations: list[dict], table: str | None = None) -> str:
     """A table's cost line: each distinct run's training and each evaluation in CPU-seconds, the measured process
     CPU time where the record has it, else wall time × the cores its process ran on (2 where unsaid)."""
     def cpu(wall, cores, measured):
         return measured if measured is not None else (wall or 0.0) * (cores or 2)
 
+    if table is not None:
+        TABLE_EVALUATIONS[table] = {id(e): e for e in evaluations}
     train, measured_runs = {}, set()
     for e in evaluations:
         path = RUN_OF[id(e)]
@@ -708,7 +713,8 @@ def metaworld_expected(tasks: tuple[str, ...], steps: int) -> dict:
     for row in metric:
         row += [gap(row[0], c, k) if ":" in row[0] else "" for c, k in (("DP", "dp_image"), ("DP3", "dp3"))]
     out = {"main": main, "metric": metric,
-           "cost": cost_line([e for t in ts for c in MW_LABELS for e in _mw_column(t, c, steps).values()])}
+           "cost": cost_line([e for t in ts for c in MW_LABELS for e in _mw_column(t, c, steps).values()],
+                             f"metaworld {ts[0].partition(':')[0]}")}
     targets = [t for t in ts if t.startswith("metaworld-target:")]
     if targets:
         def displaced(t):
@@ -830,7 +836,7 @@ def _sfx(regime: str, task: str) -> str:
 TABLE_COLUMNS = {
     "DP": ("state", "dp", "chunk", True, ALL_SEEDS),
     "DP+HiPolicy": ("state", "hipolicy", "chunk", True, SEEDS),
-    "DP3": ("pointcloud", "dp", "chunk", True, ALL_SEEDS),
+    "DP3": ("pointcloud", "dp", "chunk", True, SEEDS),  # the baseline seeds: state baselines only
     "DP3+HiPolicy": ("pointcloud", "hipolicy", "chunk", True, SEEDS),
     "DP+TE": ("state", "dp", "te", True, ALL_SEEDS),
     "DP+AAC": ("state", "dp", "aac", True, ALL_SEEDS),
@@ -870,7 +876,7 @@ def main_expected(tasks: tuple[str, ...], regime: str, obs_types: tuple[str, ...
 
     return (grouped(list(tasks), cells, 2, lambda t: ["yes" if PRECISE[t] else "no", cpu_demo_steps(t)],
                     precise_groups(tasks)),
-            cost_line([e for t in tasks for c in labels for e in runs(t, c).values()]))
+            cost_line([e for t in tasks for c in labels for e in runs(t, c).values()], f"main {regime}"))
 
 
 def check_main(root: str = ROOT, name: str = "main") -> int:
@@ -912,7 +918,8 @@ def execution_expected(tasks: tuple[str, ...], regime: str) -> list[list[str]]:
             e, _ = paired_est(hip, [runs(t, base) for t in sub])
             row.append(paired_text(e, len(sub)))
         rows.append(row)
-    return rows, cost_line([e for t in tasks for c in EXECUTION_LABELS for e in runs(t, c).values()])
+    return rows, cost_line([e for t in tasks for c in EXECUTION_LABELS for e in runs(t, c).values()],
+                           f"execution {regime}")
 
 
 def check_execution(root: str = ROOT, name: str = "execution") -> int:
@@ -944,7 +951,7 @@ def ablation_expected(tasks: tuple[str, ...], regime: str) -> list[list[str]]:
         return [cell([success(runs(t, c)) for t in sub], RATE) for c in ABLATION_LABELS] + [paired_text(e, len(sub))]
 
     return (grouped(list(tasks), cells, 0, None, precise_groups(tasks)),
-            cost_line([e for t in tasks for c in ABLATION_LABELS for e in runs(t, c).values()]))
+            cost_line([e for t in tasks for c in ABLATION_LABELS for e in runs(t, c).values()], "ablation"))
 
 
 def check_ablation(root: str = ROOT) -> int:
@@ -973,7 +980,7 @@ def hparams_expected(tasks: tuple[str, ...], regime: str, triples: tuple[tuple[i
         per = [success(r) for r in runs]
         rows.append([f"{lh}{' (default)' if (lh, lc, m) == (3, 8, 3) else ''}", str(lc), str(m),
                      *(cell([g], RATE) for g in per)] + ([cell(per, RATE)] if len(tasks) > 1 else []))
-    return rows, cost_line(evaluations)
+    return rows, cost_line(evaluations, "hparams")
 
 
 def check_hparams(root: str = ROOT) -> int:
@@ -1002,7 +1009,7 @@ def thresholds_expected(tasks: tuple[str, ...], regime: str, pairs: tuple[tuple[
                        if th else DASH)
             rows.append([t, label, th_cell, cell([success(runs)], RATE), cell([steps(runs)], COUNT, 1.0),
                          stride_text(list(runs.values()))])
-    return rows, cost_line(evaluations)
+    return rows, cost_line(evaluations, "thresholds")
 
 
 def check_thresholds(root: str = ROOT) -> int:
@@ -1038,7 +1045,7 @@ def budget_expected(tasks: tuple[str, ...], budget_steps: tuple[int, ...]):
     answer = (f"**The answer** (`results/PROTOCOL.md`'s rule, fixed before the runs: the gap shrinks or grows when "
               f"its t interval at {hi:,} steps excludes the {lo:,}-step point estimate, else it holds; '–' while "
               f"{hi:,} steps have fewer than 2 paired seeds): " + "; ".join(parts) + ".")
-    return rows, answer, cost_line(evaluations)
+    return rows, answer, cost_line(evaluations, "budget")
 
 
 def check_budget(root: str = ROOT) -> int:
@@ -1090,3 +1097,485 @@ def check_readme_copies(root: str = ROOT) -> int:
             assert end is not None and rest[end] == f"![{os.path.basename(png)}]({png})", (
                 f"README.md: the copy of {rel} is not followed by its plot, {png}: {rest[end] if end is not None else ''!r}")
     return n
+
+
+# ----------------------------------------------------------------------------------- the Meta-World diagnosis
+
+STRIDE1 = "DP+HiPolicy at stride 1"
+DIAGNOSES = {"displacements": os.path.join("results", "metaworld", "diagnosis"),
+             "targets": os.path.join("results", "metaworld", "target", "diagnosis")}
+
+
+@functools.lru_cache(maxsize=None)
+def stride1_passes(results_rel: str, task: str, steps: int) -> tuple[dict, tuple]:
+    """Per seed with a recorded DP+HiPolicy evaluation, the same network's stride-1 pass (``without_eg`` of the
+    diagnosis's ``<task>_hipolicy_t<T>_seed<k>_eval.json``, which must name the recorded network), and the seeds
+    without one."""
+    hip = _mw_column(task, "DP+HiPolicy", steps)
+    out, missing = {}, []
+    for seed in sorted(hip):
+        path = os.path.join(ROOT, results_rel, f"{task.partition(':')[2]}_hipolicy_t{steps}_seed{seed}_eval.json")
+        report = _record(path)
+        if report is None:
+            missing.append(seed)
+            continue
+        assert report["params_sha256"] == hip[seed]["network"]["params_sha256"], f"{path}: another network"
+        plain = report["without_eg"]
+        # the table's record of the pass: the guided record's fields, its outcomes the pass's
+        out[seed] = {**hip[seed], **{k: plain[k] for k in ("success_rate", "stride1_frac", "success", "steps",
+                                                          "decisions")},
+                     "eval_s": 0.0 if report["reused"]["without_eg"] else None}
+        RUN_OF[id(out[seed])] = RUN_OF[id(hip[seed])]
+    return out, tuple(missing)
+
+
+@functools.lru_cache(maxsize=None)
+def diagnose_expected(results_rel: str, tasks: tuple[str, ...], steps: int, experts_rel: str) -> dict:
+    with open(os.path.join(ROOT, experts_rel)) as f:
+        experts = json.load(f)["tasks"]
+
+    def column(t, label):
+        return stride1_passes(results_rel, t, steps)[0] if label == STRIDE1 else _mw_column(t, label, steps)
+
+    def extra(t):
+        cov = _record(os.path.join(ROOT, results_rel, f"{t.partition(':')[2]}_coverage.json"))
+        strides = (cov or {}).get("strides", {})
+        hip = list(_mw_column(t, "DP+HiPolicy", steps).values())
+        share = " / ".join(f"{100 * np.mean([e.get(f'stride{s}_frac') or 0.0 for e in hip]):.0f}" for s in (1, 2, 3))
+        by_space = experts.get(t.partition(":")[2], {})
+        return [*(f"{strides[s]['median']:.2f}" if s in strides else DASH for s in ("2", "3")),
+                f"{100 * cov['saturated_xyz']:.0f}" if cov else DASH, share if hip else DASH,
+                *(" / ".join(f"{100 * by_space[space][s]['success_rate']:.0f}" if s in by_space.get(space, {})
+                             else DASH for s in ("1", "2", "3")) for space in ("delta", "target"))]
+
+    labels = ("DP", "DP+HiPolicy", STRIDE1)
+    pairs = ((STRIDE1, "DP"), ("DP+HiPolicy", STRIDE1))
+
+    def cells(sub):
+        out = [cell([success(column(t, c)) for t in sub], RATE) for c in labels]
+        for new, base in pairs:
+            e, _ = paired_est([column(t, new) for t in sub], [column(t, base) for t in sub])
+            out.append(paired_text(e, len(sub)))
+        return out
+
+    rows = grouped(list(tasks), cells, 6, extra, [("tasks", list(tasks))])
+    notes = []
+    for new, base in pairs:
+        done = [t for t in tasks if all(set(column(t, c)) >= set(SEEDS) for c in (new, base))]
+        if done and len(tasks) > 1:
+            e, _ = paired_est([column(t, new) for t in done], [column(t, base) for t in done])
+            notes.append(f"- {new} − {base}, over the {len(done)} task(s) with every seed: {paired_text(e, len(done))}")
+    missing = {t: stride1_passes(results_rel, t, steps)[1] for t in tasks}
+    missing = {t: v for t, v in missing.items() if v}
+    if missing:
+        notes.append(f"- No {STRIDE1} pass for: " + "; ".join(
+            f"{t} seed{'s' * (len(v) > 1)} {', '.join(map(str, v))}" for t, v in missing.items()) + ".")
+    evaluations = [e for t in tasks for c in labels for e in column(t, c).values()]
+    return {"rows": rows, "notes": notes, "cost": cost_line(evaluations)}
+
+
+DIAGNOSE_HEADER = ["Task", "coverage stride 2", "coverage stride 3", "xyz at bound (%)",
+                   "DP+HiPolicy strides 1 / 2 / 3 (% decisions)",
+                   "expert chunked at stride 1 / 2 / 3, displacements (%)", "the same, absolute targets (%)",
+                   "DP", "DP+HiPolicy", STRIDE1, f"{STRIDE1} − DP (points)", f"DP+HiPolicy − {STRIDE1} (points)"]
+
+
+def check_diagnose(root: str = ROOT, which: str = "displacements") -> int:
+    """The post hoc diagnosis: per task the demos' coverage, DP+HiPolicy's strides, the chunked expert's success,
+    DP, DP+HiPolicy and the same network at stride 1 with both paired differences; the average; the notes' pooled
+    comparisons, the list of missing passes and the cost line."""
+    rel = os.path.join(DIAGNOSES[which], "diagnose.md")
+    text = read(root, rel)
+    tasks = tuple(command_arg(text, "--tasks"))
+    steps = _mw_inputs(read(ROOT, METAWORLD_TABLES["main"]))[1]  # the campaign's training steps
+    want = diagnose_expected(DIAGNOSES[which], tasks, steps, command_arg(text, "--experts")[0])
+    tally = Tally(rel)
+    title = [t for t in sections(text) if t.startswith("Meta-World diagnosis")]
+    assert len(title) == 1, f"{rel}: no diagnosis table"
+    tally.table(one_table(sections(text), title[0], rel), DIAGNOSE_HEADER, want["rows"])
+    for note in want["notes"]:
+        tally.text(text, note)
+    tally.text(text, want["cost"])
+    return tally.n
+
+
+# ------------------------------------------------------------------------------------------------- the pilots
+
+def _changes_text(changes: dict) -> str:
+    if "episodes" in changes:
+        return f"{changes['episodes']} demos"
+    return ", ".join(f"{k.removeprefix('train.').replace('_', ' ')} {v}" for k, v in changes.items())
+
+
+def pilot_eval(task: str, variant: str) -> dict | None:
+    """The evaluation the pilot made: seed 0's, on the run's first network (a run retrained since keeps the
+    evaluations of the network it replaced under ``superseded``, the first entry the oldest)."""
+    path = os.path.join(CPU_RECORDS, task, "state", variant, "seed0.json")
+    record = _record(path)
+    if record is None:
+        return None
+    if not record.get("superseded"):
+        return cpu_eval(task, "state", variant, 0)
+    found = [e for k, e in record["superseded"][0]["evaluations"].items()
+             if json.loads(k)["execution"] == "chunk" and json.loads(k)["guided"] and json.loads(k)["episodes"] == 100]
+    assert len(found) == 1, (path, len(found))
+    RUN_OF[id(found[0])] = path
+    return found[0]
+
+
+@functools.lru_cache(maxsize=None)
+def cpu_pilot_expected(tasks: tuple[str, ...]) -> dict:
+    """results/PROTOCOL.md's pilot: DP seed 0 at 100 demos; fewer demos (50, 25, 12) unless DP is below 15 %, then
+    more training steps (4000, 8000), until DP lands in [15, 85] %; else the candidate closest to 50 %."""
+    rows, chosen, evaluations = [], {}, []
+    for t in tasks:
+        base = pilot_eval(t, "dp")
+        evaluations.append(base)
+        candidates = ([{"episodes": n} for n in (50, 25, 12)] if base["success_rate"] >= 0.15
+                      else [{"train.num_steps": k} for k in (4000, 8000)])
+        tried = []
+        for c in candidates:
+            e = pilot_eval(t, "dp" + (f"_d{c['episodes']}" if "episodes" in c else f"_t{c['train.num_steps']}"))
+            if e is None:
+                break
+            evaluations.append(e)
+            tried.append((c, e["success_rate"]))
+            if 0.15 <= e["success_rate"] <= 0.85:
+                break
+        in_range = [c for c, sr in tried if 0.15 <= sr <= 0.85]
+        choice = in_range[0] if in_range else min(tried, key=lambda cs: abs(cs[1] - 0.5))[0]
+        chosen[t] = choice
+        rows.append([t, f"{100 * base['success_rate']:.0f}",
+                     ", ".join(f"{_changes_text(c)}: {100 * sr:.0f} %" for c, sr in tried),
+                     _changes_text(choice) + ("" if in_range else " (closest to 50 %, none in range)")])
+    # (its cost line is not recomputed: it counts the training of the pick_place runs retrained since, whose
+    # training times the records no longer hold)
+    notes = [f"- Record the choice in results/PROTOCOL.md and in hipolicy_jax/runs/budgets.py: `REGIMES['rlow'] = "
+             f"{chosen!r}`.",
+             f"- DP only (one stride), seed 0, {len(evaluations[0]['success'])} evaluation episodes per candidate."]
+    return {"rows": rows, "notes": notes, "chosen": chosen}
+
+
+def check_cpu_pilot(root: str = ROOT) -> int:
+    """results/pilot.md: DP at 100 demos, every candidate's success, the choice by the protocol's rule (and the same
+    choice in results/pilot_choice.json, which the Rlow tables read), the notes' choice and cost."""
+    rel = os.path.join("results", "pilot.md")
+    text = read(root, rel)
+    want = cpu_pilot_expected(tuple(command_arg(text, "--tasks")))
+    with open(os.path.join(ROOT, "results", "pilot_choice.json")) as f:
+        assert json.load(f) == want["chosen"], "results/pilot_choice.json is not the pilot's choice"
+    tally = Tally(rel)
+    tally.table(one_table(sections(text), "DP pilot: the low-data regime per task", rel),
+                ["Task", "DP @ 100 demos (%)", "Candidates tried (DP success)", "Rlow"], want["rows"])
+    for note in want["notes"]:
+        tally.text(text, note)
+    return tally.n
+
+
+MW_PILOT_RULES = {"tasks": 16, "min_tasks": 10, "state_share": 0.6, "seeds": 3, "periodic_episodes": 200}
+# results/metaworld/PROTOCOL.md: 16 tasks, at least 10 with state columns in 60 % of what is left, 3 seeds, 100
+# main + 10 x 20 periodic episodes per network
+
+
+@functools.lru_cache(maxsize=None)
+def mw_pilot_expected(tasks: tuple[str, ...], seed: int, budget_hours: float, pc_s_per_step: float,
+                      camera_ms: float) -> dict:
+    rows, rates, costs, evaluations = [], {}, [], []
+    steps = None
+    for t in tasks:
+        runs = mw_runs(t, "state", "dp_ckptevery1000_t8000")
+        e = runs[seed]
+        evaluations.append(e)
+        record = _record(RUN_OF[id(e)])
+        by_step = {c["step"]: c["success_rate"] for c in e["periodic"]["checkpoints"]}
+        by_step[int(record["checkpoint_step"])] = e["success_rate"]
+        steps = sorted(by_step) if steps is None else steps
+        assert sorted(by_step) == steps, (t, sorted(by_step), steps)
+        for n in steps:
+            rates.setdefault(n, []).append(by_step[n])
+        rows.append([t, *(f"{100 * by_step[n]:.0f}" for n in steps)])
+        tr = record["training"]
+        per_eval = [e.get("main_eval_s", e["eval_s"]) * (e.get("cpu_cores") or 2)] + [
+            c["eval_s"] * (c.get("cpu_cores") or 2) for c in e["periodic"]["checkpoints"]]
+        costs.append((t, tr["wall_time_s"] * (tr.get("cpu_cores") or 2) / tr["steps"],
+                      float(np.median(per_eval)) * 100 / len(e["success"])))
+    rows.append(["mean", *(f"{100 * np.mean(rates[n]):.1f}" for n in steps)])
+    means = {n: np.mean(r) for n, r in rates.items()}
+    chosen = min(n for n, m in means.items() if m >= max(means.values()) - 0.05 - 1e-12)
+    train_s = sum(_record(RUN_OF[id(e)])["training"]["wall_time_s"] * (_record(RUN_OF[id(e)])["training"].get(
+        "cpu_cores") or 2) for e in evaluations)
+    eval_s = sum(e["eval_s"] * (e.get("cpu_cores") or 2) for e in evaluations)
+    state_rate = float(np.median([c[1] for c in costs]))
+    state_eval = float(np.median([c[2] for c in costs]))
+    pc_eval = state_eval + float(np.mean([np.mean(e["steps"]) for e in evaluations])) * 100 * camera_ms / 1000
+    r = MW_PILOT_RULES
+    left = budget_hours * 3600 - (train_s + eval_s)
+    for n in sorted((n for n in steps if n <= chosen), reverse=True):
+        per_network = (100 + r["periodic_episodes"]) / 100
+        state_task = 2 * r["seeds"] * (state_rate * n + state_eval * per_network)
+        pc_task = 2 * r["seeds"] * (pc_s_per_step * n + pc_eval * per_network)
+        fits = [k for k in range(r["min_tasks"], r["tasks"] + 1) if k * state_task <= r["state_share"] * left]
+        if fits:
+            k = max(fits)
+            p = min(max(int((left - k * state_task) // pc_task), 0), k)
+            break
+    notes = [f"- DP only (one stride), seed {seed}, one run per task; each checkpoint evaluated on "
+             f"{len(evaluations[0]['success'])} episodes through the policy server (initial-state seeds "
+             f"{evaluations[0]['first_seed']}...).",
+             "- Rule: T = the fewest steps whose mean success over the tasks is within 5 points of the best. "
+             f"**T = {chosen}**.",
+             "- Measured costs (CPU-seconds): " + "; ".join(
+                 f"{t}: training {a:.2f} s/step, evaluation {b:.0f} s per 100 episodes" for t, a, b in costs),
+             f"- Budget rules ({budget_hours:g} CPU-hours; {left / 3600:.1f} h left after the pilot): a task's state "
+             f"columns cost {state_task / 3600:.2f} h, its point-cloud columns {pc_task / 3600:.2f} h → state "
+             f"columns on the first **{k}** tasks, point-cloud columns on the first **{p}**, T = {n}.",
+             f"- Cost: {(train_s + eval_s) / 3600:.1f} CPU-hours on this 2-core machine kind (wall time × the cores "
+             f"each process ran on; {train_s / 3600:.1f} h training {len(evaluations)} runs, {eval_s / 3600:.1f} h "
+             f"evaluating), from the records."]
+    return {"header": ["Task", *(f"DP @ {n} steps (%)" for n in steps)], "rows": rows, "notes": notes}
+
+
+def check_metaworld_pilot(root: str = ROOT) -> int:
+    """results/metaworld/pilot.md: DP's success at each pilot checkpoint per task and their mean, the chosen T by
+    the pilot's rule, the measured costs and the budget rules' outcome from them, the cost line."""
+    rel = os.path.join("results", "metaworld", "pilot.md")
+    text = read(root, rel)
+    want = mw_pilot_expected(tuple(command_arg(text, "--tasks")), int(command_arg(text, "--seeds")[0]),
+                             float(command_arg(text, "--budget-hours")[0]),
+                             float(command_arg(text, "--pointcloud-train-s-per-step")[0]),
+                             float(command_arg(text, "--camera-ms-per-frame")[0]))
+    tally = Tally(rel)
+    tally.table(one_table(sections(text), "Meta-World DP pilot: success by training length", rel), want["header"],
+                want["rows"])
+    for note in want["notes"]:
+        tally.text(text, note)
+    return tally.n
+
+
+# ------------------------------------------------------------------------------- the campaign's index and plans
+
+@functools.lru_cache(maxsize=None)
+def spent(budget: str) -> dict:
+    """What the records of ``budget`` cost, each run and each evaluation counted once (the pilot's and the
+    superseded networks' included; an evaluation that reused another, with no time of its own, not counted)."""
+    out = {"train_s": 0.0, "eval_s": 0.0, "wall_core_s": 0.0, "runs": 0, "measured_runs": 0, "evaluations": 0,
+           "measured_evaluations": 0}
+    for path in sorted(glob.glob(os.path.join(ROOT, "results", "runs", budget, "*", "*", "*", "*.json"))):
+        record = _record(path)
+        if "training" not in record:
+            continue
+        t = record["training"]
+        wall, cores, cpu = t.get("wall_time_s"), t.get("cpu_cores"), t.get("cpu_time_s")
+        if wall:
+            out["train_s"] += cpu if cpu is not None else wall * (cores or 2)
+            out["wall_core_s"] += wall * (cores or 2)
+            out["runs"] += 1
+            out["measured_runs"] += cpu is not None
+        for e in [*record["evaluations"].values(),
+                  *(e for old in record.get("superseded", []) for e in old["evaluations"].values())]:
+            if e.get("eval_s"):
+                measured = e.get("eval_cpu_s")
+                out["eval_s"] += measured if measured is not None else e["eval_s"] * (e.get("cpu_cores") or 2)
+                out["wall_core_s"] += e["eval_s"] * (e.get("cpu_cores") or 2)
+                out["evaluations"] += 1
+                out["measured_evaluations"] += measured is not None
+    return out
+
+
+def _how(s: dict) -> str:
+    if s["runs"] == s["measured_runs"] and s["evaluations"] == s["measured_evaluations"]:
+        return "(measured process CPU time)"
+    return (f"(process CPU time of {s['measured_runs']} of {s['runs']} runs and {s['measured_evaluations']} of "
+            f"{s['evaluations']} evaluations, wall time × the cores its process ran on for the rest: an upper bound, "
+            f"other jobs on those cores count too)")
+
+
+def campaign_cost_sentence() -> str:
+    s = spent("cpu")
+    return (f"The campaign cost {(s['train_s'] + s['eval_s']) / 3600:.1f} CPU-hours of this 2-core machine kind, each "
+            f"run and evaluation counted once (the pilot's included): {s['train_s'] / 3600:.1f} h training "
+            f"{s['runs']} runs, {s['eval_s'] / 3600:.1f} h making {s['evaluations']} evaluations {_how(s)}; a table's "
+            f"Cost line counts the runs it shares with others too.")
+
+
+@functools.lru_cache(maxsize=None)
+def campaign_jobs() -> tuple[int, int]:
+    """(evaluations the protocol's tables plan, how many of them are recorded): one per (task, column, seed,
+    regime), a column evaluated once however many tables show it (DP: main, execution, budget; DP+HiPolicy: main,
+    budget); the single-frequency state columns on the baseline seeds too, the training-budget table on 0, 1, 2."""
+    def commands(name):
+        text = read(ROOT, os.path.join("results", f"{name}.md"))
+        return tuple(command_arg(text, "--tasks")), text
+
+    jobs = {}
+
+    def add(task, label, seeds, suffix, runs):
+        for s in seeds:
+            jobs[task, label, s, suffix] = s in runs
+
+    for name in ("main", "main_rlow"):
+        tasks, text = commands(name)
+        regime = _regime(text)
+        for t in tasks:
+            for c in [c for o in command_arg(text, "--obs-types")
+                      for c in (("DP", "DP+HiPolicy") if o == "state" else ("DP3", "DP3+HiPolicy"))]:
+                add(t, c, TABLE_COLUMNS[c][4], _sfx(regime, t), table_runs(t, c, _sfx(regime, t)))
+    for name in ("execution", "execution_rlow"):
+        tasks, text = commands(name)
+        for t in tasks:
+            for c in EXECUTION_LABELS:
+                sfx = _sfx(_regime(text), t)
+                add(t, c, TABLE_COLUMNS[c][4], sfx, table_runs(t, c, sfx))
+    tasks, text = commands("ablation_rlow")
+    for t in tasks:
+        for c in ABLATION_LABELS:
+            add(t, c, TABLE_COLUMNS[c][4], _sfx("rlow", t), table_runs(t, c, _sfx("rlow", t)))
+    tasks, text = commands("thresholds_rlow")
+    numbers = [float(x) for x in command_arg(text, "--pairs")]
+    for t in tasks:
+        for a, b in zip(numbers[::2], numbers[1::2]):
+            add(t, f"p{a:g}/p{b:g}", SEEDS, _sfx("rlow", t), cpu_variant_runs(
+                t, "state", "hipolicy" + _sfx("rlow", t), SEEDS, percentiles=[a, b]))
+        add(t, "always stride 1", SEEDS, _sfx("rlow", t),
+            cpu_variant_runs(t, "state", "hipolicy" + _sfx("rlow", t), SEEDS, guided=False))
+    tasks, text = commands("hparams_rlow")
+    numbers = [int(x) for x in command_arg(text, "--rows")]
+    for lh, lc, m in zip(numbers[::3], numbers[1::3], numbers[2::3]):
+        prefix = "dp" if m == 1 else f"lh{lh}" if lh != 3 else f"lc{lc}" if lc != 8 else "hipolicy"
+        seeds = ALL_SEEDS if m == 1 else SEEDS
+        for t in tasks:
+            add(t, f"L_h={lh}, L_c={lc}, M={m}", seeds, _sfx("rlow", t),
+                cpu_variant_runs(t, "state", prefix + _sfx("rlow", t), seeds))
+    tasks, text = commands("budget")
+    for t in tasks:
+        for n in (int(x) for x in command_arg(text, "--steps")):
+            sfx = "" if n == 2000 else f"_t{n}"
+            for c in ("DP", "DP+HiPolicy"):
+                add(t, c, SEEDS, sfx, table_runs(t, c, sfx, SEEDS))
+    return len(jobs), sum(jobs.values())
+
+
+CAMPAIGN_TABLES = ("findings.md", "main.md", "execution.md", "main_rlow.md", "execution_rlow.md", "ablation_rlow.md",
+                   "thresholds_rlow.md", "hparams_rlow.md", "budget.md")
+
+
+def check_campaign(root: str = ROOT) -> int:
+    """results/campaign.md and campaign_plan.md: the campaign's cost from every record of the cpu budget, the number
+    of evaluations its tables plan and how many are recorded (all: nothing left, an empty plan), its tables; the
+    README's copy of the cost sentence."""
+    tally = Tally("results/campaign.md")
+    text = read(root, os.path.join("results", "campaign.md"))
+    planned, recorded = campaign_jobs()
+    tally.text(text, "\n\n" + campaign_cost_sentence() + "\n\n")
+    tally.text(text, f"\n{planned} evaluations; tables:\n\n" + "\n".join(f"- [{t}]({t})" for t in CAMPAIGN_TABLES)
+               + "\n")
+    plan = read(root, os.path.join("results", "campaign_plan.md"))
+    assert recorded == planned, f"{planned - recorded} evaluations not recorded: the campaign's tables are interim"
+    tally.text(plan, f"\n{recorded} of {planned} evaluations recorded; left: about **0.0 CPU-hours** (")
+    tally.table(one_table(sections(plan), "Campaign plan", "results/campaign_plan.md"),
+                ["Regime", "Column", "Recorded", "Runs to train", "CPU-hours left"], [])
+    readme = read(root, "README.md")
+    tally.text(readme, "<!-- campaign tables: written by `python -m experiments.paper campaign` from results/*.md -->"
+               "\n\n" + campaign_cost_sentence() + "\n\n")
+    return tally.n
+
+
+def check_metaworld_plans(root: str = ROOT) -> int:
+    """results/metaworld/plan.md and target/plan.md: nothing pending of their tables' evaluations, and what the
+    metaworld records spent; the README's line counting each table's recorded runs."""
+    s = spent("metaworld")
+    spent_h = (s["train_s"] + s["eval_s"]) / 3600
+    n = 0
+    readme = read(root, "README.md")
+    for table, plan in (("main", os.path.join("results", "metaworld", "plan.md")),
+                        ("amendment-1", os.path.join("results", "metaworld", "target", "plan.md"))):
+        text = read(ROOT, METAWORLD_TABLES[table])
+        tasks, steps = _mw_inputs(text)
+        planned = [(t, c, seed) for t in tasks for c in ("DP", "DP+HiPolicy") for seed in SEEDS]
+        recorded = sum(seed in _mw_column(t, c, steps) for t, c, seed in planned)
+        assert recorded == len(planned), f"{table}: {len(planned) - recorded} evaluations not recorded"
+        tally = Tally(plan)
+        tally.text(read(root, plan),
+                   f"\n0 of {len(planned)} evaluations pending, 0 runs to train; estimated 0.0 CPU-hours for the 0 "
+                   f"with a measured rate.\n\nSpent so far: {spent_h:.1f} CPU-hours in the `metaworld` records (runs "
+                   f"trained: {s['runs']}, evaluations: {s['evaluations']}; the pilot and every arm included) {_how(s)}; "
+                   f"spent + left: {spent_h:.1f} CPU-hours. Counted as wall time × cores, as the protocol's budget "
+                   f"counts them: {s['wall_core_s'] / 3600:.1f} spent.\n")
+        tally.table(one_table(sections(read(root, plan)), "Meta-World campaign: what is left", plan),
+                    ["Task", "Column", "Seed", "Trains", "Estimated CPU-s"], [])
+        tally.text(readme, f"{METAWORLD_TABLES[table]} -->\n\n{recorded} of {len(planned)} runs recorded.\n")
+        n += tally.n
+    return n
+
+
+def check_diagnosis_note(root: str = ROOT) -> int:
+    """results/metaworld/diagnosis/README.md's per-seed table of basketball (DP, DP+HiPolicy with its strides, the
+    same network at stride 1, the thresholds and closed-loop entropies, stride 1 − DP) and its pooled sentence, from
+    the records and the stride-1 passes."""
+    rel = os.path.join("results", "metaworld", "diagnosis", "README.md")
+    text = read(root, rel)
+    task, steps = "metaworld:basketball", _mw_inputs(read(ROOT, METAWORLD_TABLES["main"]))[1]
+    dp, hip = _mw_column(task, "DP", steps), _mw_column(task, "DP+HiPolicy", steps)
+    passes, _ = stride1_passes(DIAGNOSES["displacements"], task, steps)
+    rows = []
+    for seed in SEEDS:
+        report = _record(os.path.join(ROOT, DIAGNOSES["displacements"], f"basketball_hipolicy_t{steps}_seed{seed}_eval.json"))
+        plain, guided = report["without_eg"], hip[seed]
+        rows.append([str(seed), f"{100 * dp[seed]['success_rate']:.0f}", f"{100 * guided['success_rate']:.0f}",
+                     " / ".join(f"{100 * guided[f'stride{s}_frac']:.0f}" for s in (1, 2, 3)),
+                     f"{100 * plain['success_rate']:.0f}",
+                     " / ".join(f"{x:.2f}" for x in guided["thresholds"][1:-1]), f"{guided['mean_entropy']:.2f}",
+                     f"{plain['mean_entropy']:.2f}",
+                     f"{100 * (np.mean(plain['success']) - np.mean(dp[seed]['success'])):+.0f}"])
+    tally = Tally(rel)
+    tally.table(one_table(sections(text), "Basketball: why DP+HiPolicy scores 0 % (post-hoc diagnosis, not part of "
+                                          "the pre-registered protocol)", rel),
+                ["seed", "DP SR (%)", "DP+HiPolicy SR (%)", "its strides 1 / 2 / 3 (% of decisions)",
+                 "same network at stride 1 SR (%)", "thresholds (held-out demos)", "closed-loop entropy, guided",
+                 "at stride 1", "stride 1 − DP (points)"], rows)
+    e, _ = paired_est([passes], [dp])
+    m, interval = iv(e, signed=True).replace("-", "−").split(" ", 1)
+    tally.text(text, f"The stride-1 pass minus DP, over the {e.seeds} seeds: {m} points {interval} (95 % t "
+               f"interval over seeds).")
+    return tally.n
+
+
+def check_entropy(root: str = ROOT) -> int:
+    """results/entropy.md, version 1's early table: its runs (50 episodes, under runs/paper) are not among the
+    committed run records; ``results/entropy.json`` keeps their per-seed summaries, the only committed record of
+    them. From those: each cell's mean ± sample std over seeds, the average row (per seed the mean over the tasks),
+    the strides and the speed-up of HiPolicy's steps over w/o EG."""
+    rel = os.path.join("results", "entropy.md")
+    text = read(root, rel)
+    with open(os.path.join(ROOT, "results", "entropy.json")) as f:
+        records = json.load(f)["records"]
+    tasks, columns = command_arg(text, "--tasks"), ("DP", "w/o EG", "HiPolicy")
+    seeds = [int(s) for s in command_arg(text, "--seeds")]
+
+    def ms(values):
+        v = np.asarray(values, float)
+        return f"{v.mean():.1f} ± {v.std(ddof=1):.1f}"
+
+    def per_seed(metric, column, ts):
+        return [np.mean([r[metric] for r in records if r["column"] == column and r["seed"] == s and r["task"] in ts])
+                for s in seeds]
+
+    def strides(ts):
+        hits = [r for r in records if r["column"] == "HiPolicy" and r["task"] in ts]
+        return "/".join(f"{100 * np.mean([r.get(f'stride{k}_frac', 0.0) for r in hits]):.0f}" for k in (1, 2, 3))
+
+    rows = []
+    for label, ts in [(t, [t]) for t in tasks] + [("**Average**", tasks)]:
+        row = [label]
+        for c in columns:
+            row += [ms(100 * np.asarray(per_seed("success_rate", c, ts))), ms(per_seed("mean_steps_success", c, ts))]
+        if len(ts) > 1:
+            base, new = np.mean(per_seed("mean_steps_success", "w/o EG", ts)), np.mean(
+                per_seed("mean_steps_success", "HiPolicy", ts))
+            row[-1] += f" ({(base - new) / base * 100:+.0f}% faster)"
+        rows.append(row + [strides(ts)])
+    tally = Tally(rel)
+    tally.table(one_table(sections(text), "Entropy-guided execution: success rate (%) and execution steps", rel),
+                ["Task", "DP SR", "DP Steps", "w/o EG SR", "w/o EG Steps", "HiPolicy SR", "HiPolicy Steps",
+                 "HiPolicy strides (%)"], rows)
+    return tally.n

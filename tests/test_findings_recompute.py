@@ -27,7 +27,8 @@ MINIMUM = {
     "findings": 114, "speed": 42, "budget": 25, "bootstrap": 287,
     "metaworld main": 279, "metaworld amendment-1": 131, "amendment secondary": 73,
     "main": 81, "main_rlow": 57, "execution": 129, "execution_rlow": 129, "ablation_rlow": 65, "hparams_rlow": 45,
-    "thresholds_rlow": 63, "budget.md": 83, "README": 361,
+    "thresholds_rlow": 63, "budget.md": 83, "README": 361, "diagnose displacements": 169, "diagnose targets": 78,
+    "diagnosis note": 42, "cpu pilot": 26, "metaworld pilot": 43, "campaign": 29, "metaworld plans": 42, "entropy": 32,
 }
 
 
@@ -116,6 +117,45 @@ def test_readme_copies_are_the_committed_tables():
     """The README's generated sections hold each table file line for line (which the tests above recompute)."""
     n = rc.check_readme_copies(rc.ROOT)
     assert n >= MINIMUM["README"], f"README.md: {n} lines checked"
+
+
+@pytest.mark.parametrize("which", ["displacements", "targets"])
+def test_metaworld_diagnosis_recomputes_from_the_records(which):
+    """The post hoc diagnosis on displacements and on absolute targets: the demos' coverage and share at the bound,
+    DP+HiPolicy's strides, the chunked expert's success in both action spaces, DP, DP+HiPolicy and the same network
+    at stride 1 (its committed pass, checked to be the recorded network) with both paired differences, per task and
+    on average; the pooled lines, the missing passes and the cost line."""
+    n = rc.check_diagnose(rc.ROOT, which)
+    assert n >= MINIMUM[f"diagnose {which}"], f"diagnose ({which}): {n} cells checked"
+
+
+def test_basketball_diagnosis_note_recomputes_from_the_records():
+    n = rc.check_diagnosis_note(rc.ROOT)
+    assert n >= MINIMUM["diagnosis note"], f"diagnosis README: {n} cells checked"
+
+
+def test_pilot_tables_recompute_from_the_records():
+    """The CPU pilot (DP at 100 demos, each candidate until one lands in range, the protocol's choice, which
+    results/pilot_choice.json must hold) and the Meta-World pilot (success per checkpoint, T by its rule, the
+    measured rates and the budget rules' outcome from them, its cost)."""
+    n = rc.check_cpu_pilot(rc.ROOT)
+    assert n >= MINIMUM["cpu pilot"], f"pilot.md: {n} cells checked"
+    n = rc.check_metaworld_pilot(rc.ROOT)
+    assert n >= MINIMUM["metaworld pilot"], f"metaworld/pilot.md: {n} cells checked"
+
+
+def test_campaign_index_and_plans_recompute_from_the_records():
+    """campaign.md's cost of every cpu record and count of the tables' evaluations, campaign_plan.md's '366 of 366'
+    with nothing left, the Meta-World plans' pending count and spent CPU-hours, and the README's copies of them."""
+    n = rc.check_campaign(rc.ROOT)
+    assert n >= MINIMUM["campaign"], f"campaign: {n} cells checked"
+    n = rc.check_metaworld_plans(rc.ROOT)
+    assert n >= MINIMUM["metaworld plans"], f"metaworld plans: {n} cells checked"
+
+
+def test_entropy_table_recomputes_from_its_per_seed_summaries():
+    n = rc.check_entropy(rc.ROOT)
+    assert n >= MINIMUM["entropy"], f"entropy.md: {n} cells checked"
 
 
 def test_a_missing_table_or_section_fails(tmp_path):

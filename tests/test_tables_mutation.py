@@ -1,6 +1,6 @@
 """The mutation check of the recompute tests (``tests/mutation_tables.py``): every single-number edit of a printed
 cell in a copy of the committed tables — per-task rows, averages and totals, intervals, p-values, counts, the
-sentences the checks recompute, each table's cost line and the README's copies — fails a check of
+sentences the checks recompute, each table's cost line and the README's generated sections — fails a check of
 ``tests/recompute.py``."""
 
 import pytest
@@ -13,7 +13,7 @@ def test_every_single_number_edit_of_a_cell_fails_a_check():
     tally = mutation_tables.run()
     tried, caught = tally["cell"]
     print(mutation_tables.report(tally))
-    assert tried >= 5500, f"only {tried} printed numbers edited"
+    assert tried >= 6200, f"only {tried} printed numbers edited"
     assert caught == tried, mutation_tables.report(tally)
     for rel, per in tally["per_file"].items():
         assert per["cell"][0] > 0, f"{rel}: no printed number edited"
