@@ -1579,3 +1579,83 @@ def check_entropy(root: str = ROOT) -> int:
                 ["Task", "DP SR", "DP Steps", "w/o EG SR", "w/o EG Steps", "HiPolicy SR", "HiPolicy Steps",
                  "HiPolicy strides (%)"], rows)
     return tally.n
+
+
+# ------------------------------------------------------------------------------- the tables' settings lines
+
+LEVEL = 0.95  # the intervals' level, the one the recomputation above uses (t quantile 0.975)
+
+
+def demo_count(record: dict) -> int:
+    """The demos a run trained on: its record's count, else its demo buffer's name (``<task>_<obs>_<count>.zarr``)."""
+    if record.get("demos"):
+        return record["demos"]["episodes"]
+    return int(re.search(r"_(\d+)\.zarr$", record["data"]).group(1))
+
+
+def _cpu_budget_note() -> str:
+    """The cpu budget as its default runs were made: model, training steps x batch on demos, evaluation."""
+    path = os.path.join(CPU_RECORDS, "press_button", "state", "dp", "seed0.json")
+    record, e = _record(path), cpu_eval("press_button", "state", "dp", 0)
+    return (f"{record['policy']['model']['size'].upper()} model, {record['train']['num_steps']} steps x batch "
+            f"{record['train']['batch_size']} on {demo_count(record)} demos; {len(e['success'])} episodes, "
+            f"N={e['settings']['num_samples']}, DDIM {e['settings']['num_steps']}")
+
+
+def _mw_budget_note() -> str:
+    runs = _mw_column("metaworld:basketball", "DP", _mw_inputs(read(ROOT, METAWORLD_TABLES["main"]))[1])
+    e = runs[0]
+    record = _record(RUN_OF[id(e)])
+    demos = record["demos"]["episodes"]
+    held = round(demos * record["val_ratio"])
+    checkpoints = e["periodic"]["checkpoints"]
+    return (f"{record['policy']['model']['size'].upper()} model, the pilot's T steps x batch "
+            f"{record['train']['batch_size']} on {demos - held} demos (+{held} held out); {len(e['success'])} episodes "
+            f"through the policy server, N={e['settings']['num_samples']}, DDIM {e['settings']['num_steps']}; "
+            f"{len(checkpoints)} checkpoints x {e['periodic']['episodes']} episodes for DP3's metric")
+
+
+def _rlow_text(tasks) -> str:
+    """What Rlow changes per task, read from its runs' records: fewer demos or more training steps."""
+    base = _record(os.path.join(CPU_RECORDS, "press_button", "state", "dp", "seed0.json"))
+    parts = []
+    for t in tasks:
+        record = _record(os.path.join(CPU_RECORDS, t, "state", "hipolicy" + rlow_suffix(t), "seed0.json"))
+        if demo_count(record) != demo_count(base):
+            parts.append(f"{t}: {demo_count(record)} demos")
+        else:
+            assert record["train"]["num_steps"] != base["train"]["num_steps"], t
+            parts.append(f"{t}: num steps {record['train']['num_steps']}")
+    return f" ({'; '.join(parts)}; these replace the budget's demos or steps)"
+
+
+SETTINGS_FILES = ("results/main.md", "results/main_rlow.md", "results/execution.md", "results/execution_rlow.md",
+                  "results/ablation_rlow.md", "results/hparams_rlow.md", "results/thresholds_rlow.md",
+                  "results/budget.md", "results/pilot.md", "results/metaworld/main.md",
+                  "results/metaworld/target/main.md", "results/metaworld/pilot.md",
+                  "results/metaworld/diagnosis/diagnose.md", "results/metaworld/target/diagnosis/diagnose.md")
+
+
+def check_protocol_line(root: str, rel: str) -> int:
+    """A table's settings line: its protocol, regime (Rlow's change per task from its runs' records), seeds (the
+    command's, which the table's records must not exceed), the cells' interval and level, the budget (model,
+    training steps, batch, demos, episodes, samples, sampler steps from the records) and the evaluation episodes."""
+    text = read(root, rel)
+    metaworld = rel.startswith("results/metaworld/")
+    regime = command_arg(text, "--regime")[0]
+    seeds, baseline = command_arg(text, "--seeds"), command_arg(text, "--baseline-seeds")
+    regime_text = "" if regime == "r100" else _rlow_text(command_arg(text, "--tasks"))
+    cells = ("mean over seeds with its 95 % bootstrap interval over seeds × episodes" if rel == "results/pilot.md"
+             else f"mean over seeds (one value per trained network) with its {100 * LEVEL:.0f} % t interval over seeds")
+    budget = "metaworld" if metaworld else "cpu"
+    note = _mw_budget_note() if metaworld else _cpu_budget_note()
+    episodes = note.split(" episodes")[0].rsplit(" ", 1)[-1]
+    line = (f"Protocol: `results/{'metaworld/' if metaworld else ''}PROTOCOL.md`. Regime `{regime}`{regime_text}; "
+            f"seeds {', '.join(seeds)}" + (f" (single-frequency baselines also {', '.join(baseline)})" if baseline
+                                           else "")
+            + f". Cells: {cells}. Budget `{budget}`: {note}; evaluation episodes: {episodes} per seed, the same "
+              f"initial states for every column.")
+    tally = Tally(rel)
+    assert f"\n{line}\n" in text, f"{rel}: the settings line should read {line!r}"
+    tally.n += len(re.findall(r"\d+", line))
+    return tally.n

@@ -158,6 +158,14 @@ def test_entropy_table_recomputes_from_its_per_seed_summaries():
     assert n >= MINIMUM["entropy"], f"entropy.md: {n} cells checked"
 
 
+@pytest.mark.parametrize("rel", rc.SETTINGS_FILES)
+def test_each_tables_settings_line_recomputes_from_the_records(rel):
+    """The settings line under each table's command: protocol, regime (Rlow's change per task from its runs'
+    records), seeds, the interval's level, the budget's model, steps, batch, demos, episodes, samples and sampler
+    steps from the records."""
+    assert rc.check_protocol_line(rc.ROOT, rel) >= 10, rel
+
+
 def test_a_missing_table_or_section_fails(tmp_path):
     """The checks read what is committed: a missing file or a renamed section fails with its name, never skips."""
     with pytest.raises(AssertionError, match="findings.md: a committed table is missing"):
