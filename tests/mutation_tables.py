@@ -61,6 +61,8 @@ CHECKS = {
 }
 for _rel in rc.SETTINGS_FILES:  # each table's settings line
     CHECKS[_rel] = CHECKS[_rel] + [lambda r, rel=_rel: rc.check_protocol_line(r, rel)]
+for _rel in rc.NOTES_FILES:  # the notes whose numbers come from the records
+    CHECKS[_rel] = CHECKS[_rel] + [lambda r, rel=_rel: rc.check_notes(r, rel)]
 # the sentences (besides table rows) whose numbers the checks recompute
 CHECKED_SENTENCES = tuple(re.compile(p) for p in (
     r"^Over the \d+ \(comparison, task\) cells", r"^They give the same verdict", r"^\*\*The answer\*\*",
@@ -68,7 +70,9 @@ CHECKED_SENTENCES = tuple(re.compile(p) for p in (
     r"^- No DP\+HiPolicy at stride 1 pass for", r"^- Record the choice", r"^- DP only \(one stride\)",
     r"^- Rule: T = ", r"^- Measured costs", r"^- Budget rules", r"^\d+ of \d+ evaluations (pending|recorded)",
     r"^Spent so far", r"^The campaign cost", r"^\d+ evaluations; tables", r"^The stride-1 pass minus DP",
-    r"^Protocol: `"))
+    r"^Protocol: `", r"^- Paired columns: ", r"^- Success rate \(%\) (with entropy-guided|over \d+ episodes)",
+    r"^- DP3 columns: ", r"^- DP: one stride", r"^- Strides: share of HiPolicy", r"^- Does the gap",
+    r"^- Point-cloud columns on no task"))
 # lines with printed numbers that no committed record can give again, with the reason (tallied as notes)
 NOT_RECOMPUTED = {("results/pilot.md", "- Cost: "): "the pilot's cost counts the training of pick_place runs "
                                                      "retrained since, whose training times the records no longer "

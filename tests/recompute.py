@@ -1659,3 +1659,105 @@ def check_protocol_line(root: str, rel: str) -> int:
     assert f"\n{line}\n" in text, f"{rel}: the settings line should read {line!r}"
     tally.n += len(re.findall(r"\d+", line))
     return tally.n
+
+
+DP3_BEST = 5  # DP3's metric: the mean of a seed's 5 best periodic evaluations (``dp3_metric`` above)
+
+
+def _paired_note(version: int) -> str:
+    return (f"- Paired columns: per seed both columns have, the mean per-episode success difference on the shared "
+            f"initial states; their mean with its {100 * LEVEL:.0f} % t interval over seeds and the seed-level t "
+            f"test's p (protocol v{version}); wins / loses when the interval excludes 0 (p < {1 - LEVEL:.2f}). The "
+            f"episode-level McNemar p is in findings.md.")
+
+
+@functools.lru_cache(maxsize=None)
+def notes_expected(rel: str) -> tuple[str, ...]:
+    """The notes of a table whose numbers come from the records (protocol version, level, percentiles, points,
+    decay, strides, episodes, seeds of the initial states, steps, checkpoints)."""
+    hip = _record(os.path.join(CPU_RECORDS, "press_button", "state", "hipolicy", "seed0.json"))
+    cpu_version = hip["version"]
+    strides = "/".join(map(str, hip["policy"]["chunk"]["strides"]))
+    lo, hi = hip["calibration"]["percentiles"]
+    success_note = (f"- Success rate (%) with entropy-guided execution, thresholds calibrated on held-out demos "
+                    f"({lo:g}th / {hi:g}th percentiles); relative gain over the baseline in the average rows.")
+    if rel in ("results/main.md", "results/main_rlow.md"):
+        out = [success_note, _paired_note(cpu_version)]
+        if rel == "results/main.md":
+            enc = _record(os.path.join(CPU_RECORDS, "press_button", "pointcloud", "dp", "seed0.json"))["policy"]["encoder"]
+            out.append(f"- DP3 columns: {enc['num_points']} points (xyz{'+rgb' if enc['point_dims'] == 6 else ''}) "
+                       f"from one ray-cast camera plus proprioception (the first {enc['state_dims']} state features: "
+                       f"TCP xyz, gripper); the DP columns read the full state (proprioception and object poses).")
+        return tuple(out)
+    if rel in ("results/execution.md", "results/execution_rlow.md"):
+        decay = cpu_eval("press_button", "state", "dp", 0, "te")["settings"]["te_decay"]
+        return (f"- DP: one stride, whole chunks (L_c actions per decision); DP+TE: the same DP run with ACT's "
+                f"temporal ensembling (a decision at every step, weights exp(-{decay:g} i)); DP+AAC: the same DP run "
+                f"with adaptive action chunking (k of L_c actions, k from the entropy curve of the N samples); w/o "
+                f"EG: the HiPolicy run always at stride 1; HiPolicy: entropy-guided execution with the calibrated "
+                f"thresholds.", f"- Strides: share of HiPolicy's decisions executed at stride {strides}.",
+                _paired_note(cpu_version))
+    if rel == "results/hparams_rlow.md":
+        dp = _record(os.path.join(CPU_RECORDS, "press_button", "state", "dp", "seed0.json"))
+        return (f"- Success rate (%) with entropy-guided execution; M frequencies = strides "
+                f"{hip['policy']['chunk']['strides'][0]}..M (M={len(dp['policy']['chunk']['strides'])} is DP).",)
+    if rel in ("results/ablation_rlow.md", "results/budget.md"):
+        out = [_paired_note(cpu_version)]
+        if rel == "results/budget.md":
+            out.append(f"- Does the gap between DP+HiPolicy and DP shrink, hold or grow with training? The same CPU "
+                       f"network and batch as the budget, trained for more steps (the learning-rate schedule "
+                       f"stretched to the step count); {demo_count(hip)} demos; entropy-guided execution with "
+                       f"per-run calibrated thresholds.")
+        return tuple(out)
+    if rel == "results/findings.md":
+        episodes = len(cpu_eval("press_button", "state", "hipolicy", 0)["success"])
+        return (f"Protocol v{cpu_version} (`results/PROTOCOL.md`): the unit of evidence is the trained network. Each "
+                f"row is a paired comparison from one table: per task, the success difference (new − baseline) in "
+                f"points on the shared initial states — per seed the mean over its {episodes} episodes, then the mean "
+                f"over seeds with its {100 * LEVEL:.0f} % t interval over seeds; **wins** / **loses** when the "
+                f"interval excludes 0 (the seed-level t test's p < {1 - LEVEL:.2f}), else **ties**.",
+                f"The same paired differences (the records of version {cpu_version}, one network each) with two "
+                f"intervals: the t interval over seeds, whose verdict the tables report, and version 1's hierarchical "
+                f"bootstrap over seeds × episodes (`stats.hierarchical_bootstrap`, 10,000 resamples, percentile "
+                f"interval), which treats the {len(SEEDS)} trained networks as the whole population")
+    if rel in METAWORLD_TABLES.values():
+        tasks, steps = _mw_inputs(read(ROOT, rel))
+        runs = _mw_column(tasks[0], "DP", steps)
+        e0, e1 = runs[0], runs[1]
+        record = _record(RUN_OF[id(e0)])
+        demos = record["demos"]["episodes"]
+        checkpoints = [c["step"] for c in e0["periodic"]["checkpoints"]]
+        every = e1["first_seed"] - e0["first_seed"]
+        pilot = read(ROOT, "results/metaworld/pilot.md")
+        return (f"- Success rate (%) over {len(e0['success'])} episodes per seed (initial states {e0['first_seed']}+"
+                f"{every}·seed+i, the same for every column), step limit {e0['max_steps']}, through the policy "
+                f"server (`metaworld_bridge.evaluate`, openpi's client); whole-chunk execution, HiPolicy "
+                f"entropy-guided at thresholds from a held-out demo. Training: {record['train']['num_steps']} steps "
+                f"on {demos - 1} demos (one more held out).", _paired_note(record["version"]),
+                f"- Point-cloud columns on no task: at {record['policy']['encoder']['num_points']} points a task's DP3 "
+                f"columns cost more than the {float(command_arg(pilot, '--budget-hours')[0]):g} CPU-hours leave "
+                f"(protocol budget rule 2, pilot entry); '–' where a column has no record.",
+                f"Per seed, the mean of the {DP3_BEST} best of {len(checkpoints)} periodic evaluations (each kept "
+                f"checkpoint, every T/{checkpoints[-1] // checkpoints[0]} steps, on {e0['periodic']['episodes']} "
+                f"episodes from initial states {e0['periodic']['seed_base']}+{every}·seed+i), as DP3 reports;",
+                f"The gaps: our column's mean over its {len(SEEDS)} seeds minus the published mean, once every seed "
+                f"is recorded;")
+    if rel in (os.path.join(d, "diagnose.md") for d in DIAGNOSES.values()):
+        e = _mw_column("metaworld:basketball", "DP", _mw_inputs(read(ROOT, METAWORLD_TABLES["main"]))[1])[0]
+        return (_paired_note(_record(RUN_OF[id(e)])["version"]),
+                f"on the same {len(e['success'])} initial states per seed as DP and DP+HiPolicy")
+    return ()
+
+
+NOTES_FILES = ("results/main.md", "results/main_rlow.md", "results/execution.md", "results/execution_rlow.md",
+               "results/ablation_rlow.md", "results/hparams_rlow.md", "results/budget.md", "results/findings.md", "results/metaworld/main.md",
+               "results/metaworld/target/main.md", "results/metaworld/diagnosis/diagnose.md",
+               "results/metaworld/target/diagnosis/diagnose.md")
+
+
+def check_notes(root: str, rel: str) -> int:
+    text = read(root, rel)
+    tally = Tally(rel)
+    for note in notes_expected(rel):
+        tally.text(text, note)
+    return tally.n

@@ -166,6 +166,14 @@ def test_each_tables_settings_line_recomputes_from_the_records(rel):
     assert rc.check_protocol_line(rc.ROOT, rel) >= 10, rel
 
 
+@pytest.mark.parametrize("rel", rc.NOTES_FILES)
+def test_each_tables_notes_recompute_from_the_records(rel):
+    """The numbers in a table's notes that the records give: the protocol's version, the interval's level and its
+    p threshold, the calibration percentiles, the point clouds' size, TE's decay, the strides, the episodes and
+    their initial states, the training steps and demos, the periodic checkpoints."""
+    assert rc.check_notes(rc.ROOT, rel) >= 2, rel
+
+
 def test_a_missing_table_or_section_fails(tmp_path):
     """The checks read what is committed: a missing file or a renamed section fails with its name, never skips."""
     with pytest.raises(AssertionError, match="findings.md: a committed table is missing"):
