@@ -1744,8 +1744,15 @@ def notes_expected(rel: str) -> tuple[str, ...]:
                 f"is recorded;")
     if rel in (os.path.join(d, "diagnose.md") for d in DIAGNOSES.values()):
         e = _mw_column("metaworld:basketball", "DP", _mw_inputs(read(ROOT, METAWORLD_TABLES["main"]))[1])[0]
+        experts = _record(os.path.join(ROOT, "results", "metaworld", "diagnosis", "strided_experts.json"))
+        c = experts["chunk_len"]
         return (_paired_note(_record(RUN_OF[id(e)])["version"]),
-                f"on the same {len(e['success'])} initial states per seed as DP and DP+HiPolicy")
+                f"on the same {len(e['success'])} initial states per seed as DP and DP+HiPolicy",
+                f"at each decision it runs {c}·s steps ahead in the simulator (then restored) and every s-th of its "
+                f"actions is executed, {c} per chunk;",
+                f"--strides {' '.join(map(str, experts['strides']))} --action-spaces "
+                f"{' '.join(experts['action_spaces'])} --seeds {len(experts['seeds'])} --max-steps "
+                f"{experts['max_steps']} --out")
     return ()
 
 
