@@ -1,18 +1,22 @@
 """Every printed number of the committed tables, recomputed from the committed run records.
 
-``results/findings.md``, the Meta-World tables (``results/metaworld/main.md``, amendment 1's
-``results/metaworld/target/main.md``), the campaign's tables (``results/main.md``, ``main_rlow.md``,
+What a reader quotes — ``results/findings.md``; the campaign's tables (``main.md``, ``main_rlow.md``,
 ``execution.md``, ``execution_rlow.md``, ``ablation_rlow.md``, ``hparams_rlow.md``, ``thresholds_rlow.md``,
-``budget.md``) and the README's copies of them are what a reader quotes. ``recompute.py`` rebuilds each cell's text
-(point, interval, p, verdict, every column, every average and total row) from
-``results/runs/<budget>/<task>/<obs>/<variant>/seed<k>.json`` with json, numpy and scipy alone — not the project's
-statistics module, not its table code, not the tables' JSON — and compares it with the printed text, so a table
-left stale after new records, a pairing of the wrong seeds or episodes, a slip in an interval, a p or a verdict, or
-an edit of one printed digit fails here, naming the cell. A missing file or section fails, it is never skipped, and
-each test counts the cells it compared and fails below the count stated beside it (the committed tables' full size).
+``budget.md``), its pilot, index and plan (``pilot.md``, ``campaign.md``, ``campaign_plan.md``) and version 1's
+``entropy.md``; the Meta-World tables (``results/metaworld/main.md``, amendment 1's ``target/main.md``), their
+pilot, plans and post hoc diagnosis (``diagnosis/diagnose.md``, ``target/diagnosis/diagnose.md``, the basketball
+note ``diagnosis/README.md``); and the README's generated copies of them — is rebuilt by ``recompute.py`` cell by
+cell (point, interval, p, verdict, every column, every average and total row, the cost lines, the settings lines
+and the notes' record-given numbers) from ``results/runs/<budget>/<task>/<obs>/<variant>/seed<k>.json`` and the
+committed diagnosis files, with json, numpy and scipy alone — not the project's statistics module, not its table
+code, not the tables' JSON (``entropy.json`` excepted: its runs are not among the records) — and compared with the
+printed text, so a table left stale after new records, a pairing of the wrong seeds or episodes, a slip in an
+interval, a p or a verdict, or an edit of one printed digit fails here, naming the cell. A missing file or section
+fails, it is never skipped, and each test counts the cells it compared and fails below the count stated beside it
+(the committed tables' full size).
 
 The mutation check (``tests/mutation_tables.py``, the slow test ``tests/test_tables_mutation.py``) edits each
-printed number of a copy of the tables in turn and shows that these checks fail on every edit.
+printed number of a copy of the tables in turn and shows that these checks fail on every edit of a cell.
 """
 
 from __future__ import annotations
