@@ -56,7 +56,7 @@ CHECKS = {
     "results/metaworld/target/plan.md": [rc.check_metaworld_plans],
     "results/metaworld/diagnosis/diagnose.md": [lambda r: rc.check_diagnose(r, "displacements")],
     "results/metaworld/target/diagnosis/diagnose.md": [lambda r: rc.check_diagnose(r, "targets")],
-    "results/metaworld/diagnosis/README.md": [rc.check_diagnosis_note],
+    "results/metaworld/diagnosis/README.md": [rc.check_diagnosis_note, rc.check_diagnosis_note_prose],
     "README.md": [rc.check_readme_copies, rc.check_campaign, rc.check_metaworld_plans],
 }
 for _rel in rc.SETTINGS_FILES:  # each table's settings line

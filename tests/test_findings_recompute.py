@@ -32,7 +32,7 @@ MINIMUM = {
     "metaworld main": 279, "metaworld amendment-1": 131, "amendment secondary": 73,
     "main": 81, "main_rlow": 57, "execution": 129, "execution_rlow": 129, "ablation_rlow": 65, "hparams_rlow": 45,
     "thresholds_rlow": 63, "budget.md": 83, "README": 361, "diagnose displacements": 169, "diagnose targets": 78,
-    "diagnosis note": 42, "cpu pilot": 26, "metaworld pilot": 43, "campaign": 29, "metaworld plans": 42, "entropy": 32,
+    "diagnosis note": 42, "diagnosis reading": 76, "cpu pilot": 26, "metaworld pilot": 43, "campaign": 29, "metaworld plans": 42, "entropy": 32,
 }
 
 
@@ -134,8 +134,12 @@ def test_metaworld_diagnosis_recomputes_from_the_records(which):
 
 
 def test_basketball_diagnosis_note_recomputes_from_the_records():
+    """The note's per-seed table and pooled line, and the numbers of its reading (success, entropies against the
+    thresholds, stride shares, coverage and bound ranges over the tasks, the chunked expert per stride)."""
     n = rc.check_diagnosis_note(rc.ROOT)
     assert n >= MINIMUM["diagnosis note"], f"diagnosis README: {n} cells checked"
+    n = rc.check_diagnosis_note_prose(rc.ROOT)
+    assert n >= MINIMUM["diagnosis reading"], f"diagnosis README's reading: {n} numbers checked"
 
 
 def test_pilot_tables_recompute_from_the_records():
