@@ -13,7 +13,9 @@ read the README.
 
 Numbers on the other lines of a table file (its notes describing the settings: protocol version, interval level,
 seeds, budget) are edited as well and tallied apart as notes, with the number of them a check catches anyway;
-``NOT_RECOMPUTED`` names the printed numbers no committed record can give again, and why.
+``NOT_RECOMPUTED`` names the printed numbers no committed record can give again, and why. The protocols
+(``results/PROTOCOL.md``, ``results/metaworld/PROTOCOL.md``) are the pre-registered plan: only their pilot entries,
+copies of the pilots' numbers, are edited (``ONLY_TABLES``).
 
     python -m tests.mutation_tables          # prints the tally and every uncaught edit; exit status 1 if a cell edit
                                              # is uncaught (file arguments: only those files)
@@ -58,6 +60,8 @@ CHECKS = {
     "results/metaworld/target/diagnosis/diagnose.md": [lambda r: rc.check_diagnose(r, "targets")],
     "results/metaworld/diagnosis/README.md": [rc.check_diagnosis_note, rc.check_diagnosis_note_prose],
     "README.md": [rc.check_readme_copies, rc.check_campaign, rc.check_metaworld_plans],
+    "results/PROTOCOL.md": [rc.check_protocol_pilot_entries],
+    "results/metaworld/PROTOCOL.md": [rc.check_protocol_pilot_entries],
 }
 for _rel in rc.SETTINGS_FILES:  # each table's settings line
     CHECKS[_rel] = CHECKS[_rel] + [lambda r, rel=_rel: rc.check_protocol_line(r, rel)]
@@ -73,6 +77,8 @@ CHECKED_SENTENCES = tuple(re.compile(p) for p in (
     r"^Protocol: `", r"^- Paired columns: ", r"^- Success rate \(%\) (with entropy-guided|over \d+ episodes)",
     r"^- DP3 columns: ", r"^- DP: one stride", r"^- Strides: share of HiPolicy", r"^- Does the gap",
     r"^- Point-cloud columns on no task"))
+# the protocols are the pre-registered plan; only their pilot entries (copies of the pilots' numbers) are results
+ONLY_TABLES = {"results/PROTOCOL.md": "| task | DP @ 100 demos", "results/metaworld/PROTOCOL.md": "| task | DP @ "}
 # lines with printed numbers that no committed record can give again, with the reason (tallied as notes)
 NOT_RECOMPUTED = {("results/pilot.md", "- Cost: "): "the pilot's cost counts the training of pick_place runs "
                                                      "retrained since, whose training times the records no longer "
@@ -99,6 +105,10 @@ def sites(rel: str, text: str) -> list[tuple[int, int, str]]:
     sentences (the README: every line of its copies), 'note' for the rest of a table file; commands left out."""
     lines = text.split("\n")
     copies = _readme_copy_lines(lines) if rel == "README.md" else None
+    if rel in ONLY_TABLES:  # the table starting so, to its last row
+        start = next(i for i, line in enumerate(lines) if line.startswith(ONLY_TABLES[rel]))
+        end = next(i for i in range(start, len(lines)) if not lines[i].startswith("|"))
+        copies = set(range(start, end))
     out = []
     for i, line in enumerate(lines):
         if line.startswith("Command: "):

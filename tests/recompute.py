@@ -1857,3 +1857,52 @@ def check_diagnosis_note_prose(root: str = ROOT) -> int:
     for claim in claims[:1] + claims[2:]:  # (the date is the note's own)
         tally.text(prose, claim)
     return tally.n
+
+
+def check_protocol_pilot_entries(root: str = ROOT) -> int:
+    """The protocols' pilot entries, copies of the pilots' numbers: results/PROTOCOL.md's Rlow table (DP at 100
+    demos, each candidate's success, the choice) and results/metaworld/PROTOCOL.md's training-length table."""
+    tally = Tally("results/PROTOCOL.md")
+    want = cpu_pilot_expected(TASKS)
+    text = read(root, "results/PROTOCOL.md")
+    rows = {r[0]: r for r in one_table(sections(text), _protocol_title(text, "| task | DP @ 100 demos"),
+                                       "results/PROTOCOL.md")[1]}
+    assert list(rows) == list(TASKS), list(rows)
+    for t, table_row in zip(TASKS, want["rows"]):
+        base = int(table_row[1])
+        candidates = table_row[2].replace(", ", "; ").replace("num steps ", "")
+        candidates = re.sub(r"(\d+): ", r"\1 steps: ", candidates) if "num steps" in table_row[2] else candidates
+        row = rows[t]
+        tally.eq(row[1], f"{base} %" + (" (the floor)" if base < 15 else ""), f"{t} DP @ 100 demos")
+        tally.eq(row[2], ("rule 3, more steps at 100 demos: " if "num steps" in table_row[2] else "") + candidates,
+                 f"{t} candidates")
+        choice = table_row[3].split(" (")[0].replace("num steps ", "")
+        choice = f"{choice} steps (100 demos)" if "demos" not in choice else choice
+        bold = f"**{choice.split(' (')[0]}**" + (" (100 demos)" if "(100 demos)" in choice else "")
+        in_range = "closest" not in table_row[3]
+        bold += " (in range)" if in_range else f" — no candidate in range; rule 4 (closest to {100 * (0.15 + 0.85) / 2:.0f} %)"
+        tally.eq(row[3][:len(bold)], bold, f"{t} Rlow")
+    mw = read(ROOT, "results/metaworld/pilot.md")
+    want = mw_pilot_expected(tuple(command_arg(mw, "--tasks")), int(command_arg(mw, "--seeds")[0]),
+                             float(command_arg(mw, "--budget-hours")[0]),
+                             float(command_arg(mw, "--pointcloud-train-s-per-step")[0]),
+                             float(command_arg(mw, "--camera-ms-per-frame")[0]))
+    rel = "results/metaworld/PROTOCOL.md"
+    text = read(root, rel)
+    steps = [int(h.split("@ ")[1].split()[0]) for h in want["header"][1:]]
+    header = ["task", f"DP @ {steps[0]:,}", *(f"{n:,}" for n in steps[1:-1]), f"{steps[-1]:,} steps"]
+    rows = [[r[0].partition(":")[2] or r[0], *(f"{c} %" for c in r[1:])] for r in want["rows"]]
+    tally2 = Tally(rel)
+    tally2.table(one_table(sections(text), _protocol_title(text, "| task | DP @ "), rel), header, rows)
+    return tally.n + tally2.n
+
+
+def _protocol_title(text: str, table_start: str) -> str:
+    """The section holding the table that starts with ``table_start``."""
+    title = ""
+    for line in text.splitlines():
+        if line.startswith("#") and line.lstrip("#").startswith(" "):
+            title = line.lstrip("#").strip()
+        elif line.startswith(table_start):
+            return title
+    raise AssertionError(f"no table starting {table_start!r}")

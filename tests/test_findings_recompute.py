@@ -32,7 +32,7 @@ MINIMUM = {
     "metaworld main": 279, "metaworld amendment-1": 131, "amendment secondary": 73,
     "main": 81, "main_rlow": 57, "execution": 129, "execution_rlow": 129, "ablation_rlow": 65, "hparams_rlow": 45,
     "thresholds_rlow": 63, "budget.md": 83, "README": 361, "diagnose displacements": 169, "diagnose targets": 78,
-    "diagnosis note": 42, "diagnosis reading": 76, "cpu pilot": 26, "metaworld pilot": 43, "campaign": 29, "metaworld plans": 42, "entropy": 32,
+    "diagnosis note": 42, "diagnosis reading": 76, "protocol pilots": 32, "cpu pilot": 26, "metaworld pilot": 43, "campaign": 29, "metaworld plans": 42, "entropy": 32,
 }
 
 
@@ -150,6 +150,13 @@ def test_pilot_tables_recompute_from_the_records():
     assert n >= MINIMUM["cpu pilot"], f"pilot.md: {n} cells checked"
     n = rc.check_metaworld_pilot(rc.ROOT)
     assert n >= MINIMUM["metaworld pilot"], f"metaworld/pilot.md: {n} cells checked"
+
+
+def test_the_protocols_pilot_entries_are_the_pilots_numbers():
+    """results/PROTOCOL.md's Rlow pilot entry and results/metaworld/PROTOCOL.md's training-length pilot entry: each
+    number recomputed as the pilots' tables are."""
+    n = rc.check_protocol_pilot_entries(rc.ROOT)
+    assert n >= MINIMUM["protocol pilots"], f"the protocols' pilot entries: {n} cells checked"
 
 
 def test_campaign_index_and_plans_recompute_from_the_records():
