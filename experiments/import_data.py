@@ -8,9 +8,10 @@
 Formats: ``dp-zarr`` (Diffusion Policy zarr ReplayBuffer), ``robomimic`` (hdf5), ``lerobot`` (local LeRobot v2.x
 or v3.0 folder; videos decoded with PyAV). ``--key-map obs_key=src_key[,src_key...]`` picks and renames keys (several
 sources are concatenated along the last axis); without it each format's default map is used (see
-``hipolicy_jax.data.importers``). Episodes shorter than ``--min-length`` frames (default: the default
-``ChunkConfig.action_span``, the longest stride's action window) are dropped and listed in the printed summary;
-any other problem stops the import with an error naming the file, key and expected vs actual. ``--dry-run``
+``hipolicy_jax.data.importers``). Every episode is kept by default: training pads episode edges as Diffusion
+Policy's sampler does (observation history repeats the first frame, actions repeat the last), so an episode of any
+length trains. ``--min-length N`` drops (and lists in the printed summary) episodes shorter than N frames, as an
+explicit choice; any other problem stops the import with an error naming the file, key and expected vs actual. ``--dry-run``
 validates and prints the summary without writing. Refuses to overwrite DST unless ``--force``.
 Exit status: 0 on success, 1 on invalid data, 2 on bad arguments.
 """
@@ -34,9 +35,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("dst", nargs="?", default=None, help="destination zarr directory (optional with --dry-run)")
     p.add_argument("--key-map", nargs="+", default=None, metavar="OBS_KEY=SRC_KEY[,SRC_KEY...]",
                    help="project key = source key(s); several sources are concatenated along the last axis")
-    p.add_argument("--min-length", type=int, default=ChunkConfig().action_span,
-                   help="drop (and report) episodes with fewer frames (default: ChunkConfig().action_span = "
-                        "%(default)s)")
+    p.add_argument("--min-length", type=int, default=1,
+                   help="drop (and report) episodes with fewer frames (default: %(default)s, keep every episode: "
+                        "training pads episode edges; e.g. ChunkConfig().action_span = "
+                        f"{ChunkConfig().action_span} keeps only episodes that fill the longest stride's chunk)")
     p.add_argument("--dry-run", action="store_true", help="validate and print the summary without writing")
     p.add_argument("--force", action="store_true", help="overwrite an existing DST")
     p.add_argument("--summary-json", default=None, help="also write the summary as JSON to this path")

@@ -4,12 +4,21 @@ Layout: ``<dir>/<step>/{state, normalizer, meta}``. ``meta`` carries everything 
 without the training script: the policy config, the action dimension and the per-frame observation shapes.
 A checkpoint is only listed by orbax once its write committed, so a run killed mid-write resumes from the
 previous complete step.
+
+Checked: ``meta["checksums"]`` holds the SHA-256 (``tree_sha256``) of every saved tree (``CHECKED_TREES``: the
+step, parameters, EMA parameters, optimiser state and normaliser), computed from the arrays before the write; every
+``restore`` recomputes them from what it read and raises ``CheckpointDamaged`` (one line: step, tree, path) on a
+mismatch, so damaged files (a bad disk, an interrupted copy, a sync tool) are never used silently. A checkpoint
+written before checksums were stored loads with a one-line note that it is unchecked.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import errno
+import hashlib
 import os
+import sys
 import typing
 from typing import Any, NamedTuple
 
@@ -18,6 +27,11 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from hipolicy_jax.config import PolicyConfig
+from hipolicy_jax.parallel import to_host
+
+# The trees a checkpoint stores, each with its own SHA-256 in meta["checksums"]: the TrainState's fields and the
+# normaliser's statistics.
+CHECKED_TREES = ("step", "params", "ema_params", "opt_state", "normalizer")
 
 
 def config_to_dict(cfg) -> dict:
@@ -44,17 +58,89 @@ def _tuple(v):
     return tuple(_tuple(x) for x in v) if isinstance(v, list) else v
 
 
+def _identity(path: str) -> tuple[int, int] | None:
+    """(device, inode) of a directory, None when it is gone: a directory removed and made again differs."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
+def tree_sha256(tree) -> str:
+    """SHA-256 of a pytree of arrays: every leaf's path, dtype, shape and bytes, in path order. Replicated
+    multi-process arrays are read from this process's copy (``parallel.to_host``)."""
+    h = hashlib.sha256()
+    leaves = jax.tree_util.tree_flatten_with_path(to_host(tree))[0]
+    for path, leaf in sorted(leaves, key=lambda kv: jax.tree_util.keystr(kv[0])):
+        x = np.ascontiguousarray(np.asarray(leaf))
+        h.update(jax.tree_util.keystr(path).encode())
+        h.update(f"{x.dtype.str}{x.shape}".encode())
+        h.update(x.reshape(-1).view(np.uint8))  # the bytes, without a copy (any dtype, bfloat16 too)
+    return h.hexdigest()
+
+
+def checksums(state, normalizer: dict) -> dict[str, str]:
+    """``{tree: SHA-256}`` of a ``TrainState`` and a normaliser's ``to_dict()``, for ``CHECKED_TREES``."""
+    trees = {"step": state.step, "params": state.params, "ema_params": state.ema_params,
+             "opt_state": state.opt_state, "normalizer": normalizer}
+    return {name: tree_sha256(trees[name]) for name in CHECKED_TREES}
+
+
+class CheckpointDamaged(ValueError):
+    """A checkpoint's files read back, but one of its trees differs from what was written."""
+
+    def __init__(self, path: str, step: int, trees: tuple[str, ...], hint: str = ""):
+        self.path, self.step, self.trees = path, step, tuple(trees)
+        super().__init__(f"checkpoint: step {step} at {path} is damaged: {self.what()}{hint}")
+
+    def what(self) -> str:
+        """e.g. 'its opt_state does not match the SHA-256 stored when it was written'."""
+        verb = "does" if len(self.trees) == 1 else "do"
+        return f"its {', '.join(self.trees)} {verb} not match the SHA-256 stored when it was written"
+
+    def with_hint(self, hint: str) -> CheckpointDamaged:
+        return CheckpointDamaged(self.path, self.step, self.trees, hint)
+
+
+def verify(path: str, step: int, meta: dict, state, normalizer: dict, *, quiet: bool = False) -> bool:
+    """Check restored trees against ``meta["checksums"]``; → True when checked, False for a checkpoint written
+    before checksums were stored (noted in one line on stderr unless ``quiet``). Raises ``CheckpointDamaged``."""
+    stored = meta.get("checksums")
+    if not stored:
+        if not quiet:
+            print(f"[checkpoint] step {step} at {path} carries no checksum (written before checksums were stored): "
+                  f"loaded unchecked", file=sys.stderr, flush=True)
+        return False
+    read = checksums(state, normalizer)
+    damaged = tuple(tree for tree in CHECKED_TREES if stored.get(tree) != read[tree])
+    if damaged:
+        raise CheckpointDamaged(path, step, damaged)
+    return True
+
+
 class Checkpointer:
-    """Thin wrapper over ``ocp.CheckpointManager``: save every ``every`` steps, keep the newest ``keep``."""
+    """Thin wrapper over ``ocp.CheckpointManager``: save every ``every`` steps, keep the newest ``keep``; every
+    save stores the trees' checksums in its meta and every ``restore`` verifies them (``verify``)."""
 
     def __init__(self, directory: str, every: int = 1000, keep: int = 3):
         self.directory = os.path.abspath(directory)
         options = ocp.CheckpointManagerOptions(max_to_keep=keep, save_interval_steps=every, create=True)
         self._mgr = ocp.CheckpointManager(self.directory, options=options)
+        self._identity = _identity(self.directory)
 
     def save(self, step: int, state, normalizer, meta: dict, force: bool = False) -> bool:
+        """Save ``step`` when it is due (every ``every`` steps) or ``force``; → whether a save started. The
+        checksums are computed here, from the arrays, before orbax writes them."""
+        if _identity(self.directory) != self._identity:  # orbax would quietly make it again
+            raise FileNotFoundError(errno.ENOENT, f"{self.directory} was removed (or replaced) since this "
+                                                  f"checkpointer opened it")
+        if not force and not self._mgr.should_save(step):
+            return False
+        norm = normalizer.to_dict()
+        meta = {**meta, "checksums": checksums(state, norm)}
         args = ocp.args.Composite(state=ocp.args.StandardSave(state),
-                                  normalizer=ocp.args.StandardSave(normalizer.to_dict()),
+                                  normalizer=ocp.args.StandardSave(norm),
                                   meta=ocp.args.JsonSave(meta))
         return self._mgr.save(step, args=args, force=force)
 
@@ -64,11 +150,18 @@ class Checkpointer:
     def all_steps(self) -> list[int]:
         return list(self._mgr.all_steps())
 
-    def restore(self, step: int, abstract_state) -> tuple[Any, dict, dict]:
-        """→ (state, normalizer dict, meta)."""
+    def step_path(self, step: int) -> str:
+        return os.path.join(self.directory, str(step))
+
+    def restore(self, step: int, abstract_state, *, check: bool = True, quiet: bool = False
+                ) -> tuple[Any, dict, dict]:
+        """→ (state, normalizer dict, meta), verified against the stored checksums (``check=False`` skips that,
+        for the benchmark of its cost only). Raises ``CheckpointDamaged`` when a tree differs."""
         args = ocp.args.Composite(state=ocp.args.StandardRestore(abstract_state),
                                   normalizer=ocp.args.StandardRestore(), meta=ocp.args.JsonRestore())
         r = self._mgr.restore(step, args=args)
+        if check:
+            verify(self.step_path(step), step, r.meta, r.state, r.normalizer, quiet=quiet)
         return r.state, r.normalizer, r.meta
 
     def restore_meta(self, step: int) -> dict:
@@ -125,6 +218,8 @@ def load_policy(directory: str, step: int | None = None) -> LoadedPolicy:
             abstract = jax.eval_shape(
                 lambda: init_train_state(init_policy_params(cfg, action_dim, example_obs, jax.random.key(0)), tx))
             state, norm, meta = ckpt.restore(step, abstract)
+        except CheckpointDamaged as e:
+            raise e.with_hint(f"; pass another --step (steps: {sorted(steps)}) or re-train") from None
         except Exception as e:  # noqa: BLE001 - any read failure: one line naming the checkpoint
             raise ValueError(f"checkpoint: {os.path.join(directory, str(step))} is unreadable "
                              f"({type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''}); pass "
@@ -132,4 +227,5 @@ def load_policy(directory: str, step: int | None = None) -> LoadedPolicy:
     return LoadedPolicy(cfg, net, state.ema_params, Normalizer.from_dict(norm), meta, int(step))
 
 
-__all__ = ["Checkpointer", "LoadedPolicy", "load_policy", "config_to_dict", "config_from_dict"]
+__all__ = ["CHECKED_TREES", "CheckpointDamaged", "Checkpointer", "LoadedPolicy", "checksums", "config_from_dict",
+           "config_to_dict", "load_policy", "tree_sha256", "verify"]

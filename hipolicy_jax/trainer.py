@@ -6,8 +6,9 @@ command after a stop continues the same loss sequence.
 
 Crash safety: orbax writes a step into a temporary directory and renames it when complete, so a run killed mid-write
 leaves no half step behind (the leftover temporary directory is reported and removed). A step that is listed but
-cannot be restored (truncated or corrupted files) is reported, moved aside to ``checkpoints/corrupt_<step>`` and the
-next older step is used.
+cannot be restored (truncated files) or whose trees differ from the checksums stored when it was written (damaged
+files) is reported in one line, kept aside as ``checkpoints/corrupt_<step>`` (never deleted) and the next older
+step is used.
 
 Data parallelism: with several devices (or ``num_devices``) the batch is sharded over a ``("data",)`` mesh and the
 state replicated (``parallel``); the loss sequence matches single-device training on the same global batches.
@@ -18,6 +19,10 @@ TensorBoard event files under ``tb/``.
 
 from __future__ import annotations
 
+import asyncio
+import errno
+import gc
+import inspect
 import json
 import logging
 import os
@@ -33,7 +38,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from hipolicy_jax import jsonio
-from hipolicy_jax.checkpoint import Checkpointer, config_from_dict, config_to_dict
+from hipolicy_jax.checkpoint import CheckpointDamaged, Checkpointer, config_from_dict, config_to_dict
 from hipolicy_jax.config import PolicyConfig, TrainConfig
 from hipolicy_jax.models.policy_net import PolicyNet, init_policy_params, param_count
 from hipolicy_jax import parallel
@@ -77,18 +82,74 @@ def _write_error(ckpt_dir: str, error: BaseException, last_step: int | None) -> 
         free = f"{shutil.disk_usage(ckpt_dir).free / 2**20:.0f} MiB free"
     except OSError:
         free = "free space unknown"
+    if code == errno.ENOENT or not os.path.isdir(ckpt_dir):
+        return CheckpointWriteError(code, f"writing a checkpoint to {ckpt_dir} failed ({os.strerror(code)}): the "
+                                          f"directory was removed during training; rerun the same command to "
+                                          f"start again")
     kept = f"the last committed checkpoint (step {last_step}) is intact" if last_step is not None else \
         "no checkpoint was committed yet"
+    fix = {errno.ENOSPC: "free space", errno.EDQUOT: "free space", errno.EROFS: "make it writable",
+           errno.EACCES: "make it writable", errno.EPERM: "make it writable"}.get(code, "fix that")
     return CheckpointWriteError(code, f"writing a checkpoint to {ckpt_dir} failed ({os.strerror(code)}; {free}); "
-                                      f"{kept}: free space and rerun the same command to resume")
+                                      f"{kept}: {fix} and rerun the same command to resume")
+
+
+def _latest_step(ckpt: Checkpointer) -> int | None:
+    """The newest committed step, or None when there is none or the directory cannot be read."""
+    try:
+        return ckpt.latest_step()
+    except Exception:  # noqa: BLE001 - a removed or unreadable directory: nothing to name
+        return None
 
 
 class _QuietCheckpointThreads(logging.Filter):
-    """Drops the tracebacks orbax's writer threads log when a write fails: ``fit`` raises the failure itself as one
-    line (``CheckpointWriteError``)."""
+    """Drops what orbax's background writers log when a write fails: absl's tracebacks from its threads and
+    asyncio's "Task exception was never retrieved" for its serialisation tasks, logged when they are collected.
+    ``fit`` raises the failure itself as one line (``CheckpointWriteError``) and counts the dropped records."""
+
+    def __init__(self):
+        super().__init__()
+        self.dropped = 0
+        self.failed = False  # a write failed: orbax's threads may still report it after fit has raised
 
     def filter(self, record: logging.LogRecord) -> bool:
-        return not (record.levelno >= logging.ERROR and record.exc_info and "orbax" in record.pathname)
+        text = record.getMessage() if record.name == "asyncio" else ""
+        ours = (record.levelno >= logging.ERROR and record.exc_info and "orbax" in record.pathname) or \
+            ("orbax" in text and ("never retrieved" in text or "exception" in text))
+        self.dropped += bool(ours)
+        return not ours
+
+    def __enter__(self):
+        for name in ("absl", "asyncio"):
+            logging.getLogger(name).addFilter(self)
+        return self
+
+    def __exit__(self, *exc):
+        """After a failed write the filter stays on for the rest of the process: orbax's writer threads report
+        the same failure when their signals time out, after ``fit`` has raised it as one line."""
+        self.dropped += retrieve_failed_writes(self.failed)
+        if not self.failed:
+            for name in ("absl", "asyncio"):
+                logging.getLogger(name).removeFilter(self)
+
+
+def retrieve_failed_writes(failed: bool) -> int:
+    """Silence what a failed orbax write leaves behind, to be logged when it is collected (possibly at the
+    interpreter's exit, after the one-line error): mark the exceptions of its finished, failed tasks as retrieved
+    (``Future.exception()``) and, after a failure (``failed``), close its coroutines that were created but never
+    started (they would warn "never awaited"). Call once orbax's writers have stopped; → how many were silenced."""
+    gc.collect()
+    count = 0
+    for obj in gc.get_objects():
+        if isinstance(obj, asyncio.Future) and obj.done() and not obj.cancelled():
+            error = obj.exception()  # retrieving it is the point
+            if error is not None and "orbax" in repr(obj) + str(error):
+                count += 1
+        elif failed and inspect.iscoroutine(obj) and "orbax" in obj.cr_code.co_filename and \
+                inspect.getcoroutinestate(obj) == inspect.CORO_CREATED:
+            obj.close()
+            count += 1
+    return count
 
 
 class FitResult(NamedTuple):
@@ -138,8 +199,20 @@ def clean_incomplete_writes(directory: str) -> list[str]:
     return leftovers
 
 
+def set_aside(directory: str, step: int) -> str:
+    """Rename ``<directory>/<step>`` to the first free ``corrupt_<step>[.k]`` (a damaged checkpoint is kept for
+    inspection, never deleted); → the new path."""
+    aside, k = os.path.join(directory, f"corrupt_{step}"), 0
+    while os.path.exists(aside):
+        k += 1
+        aside = os.path.join(directory, f"corrupt_{step}.{k}")
+    os.rename(os.path.join(directory, str(step)), aside)
+    return aside
+
+
 def restore_newest_readable(directory: str, abstract, meta: dict):
-    """Restore the newest checkpoint that reads back; move unreadable ones aside. → (state, step) or (None, None).
+    """Restore the newest checkpoint that reads back and matches its checksums; set the others aside
+    (``set_aside``), one line each. → (state, step) or (None, None).
 
     Raises ValueError when the newest readable checkpoint belongs to a different config.
     """
@@ -154,17 +227,18 @@ def restore_newest_readable(directory: str, abstract, meta: dict):
                                      f"or data shapes; pass a new output directory or delete the old one")
                 state, _, _ = ckpt.restore(step, abstract)
             return state, step
+        except CheckpointDamaged as e:
+            why = e.what()
         except ValueError as e:
             if "different policy config" in str(e):
                 raise
-            bad = e
+            why = f"unreadable: {type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''}"
         except Exception as e:  # noqa: BLE001 — any read failure means this step is unusable
-            bad = e
-        aside = os.path.join(directory, f"corrupt_{step}")
-        shutil.rmtree(aside, ignore_errors=True)
-        os.rename(os.path.join(directory, str(step)), aside)
-        _report(f"step {step} is unreadable ({type(bad).__name__}: {str(bad)[:200]}); moved to {aside}, "
-                f"trying an older step")
+            why = f"unreadable: {type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''}"
+        aside = set_aside(directory, step)
+        older = [s for s in steps if s < step]
+        _report(f"step {step} is damaged ({why}); kept aside as {aside}, "
+                + (f"trying step {older[0]}" if older else "no older checkpoint: training starts from step 0"))
     return None, None
 
 
@@ -294,8 +368,7 @@ def fit(cfg: PolicyConfig, train_cfg: TrainConfig, dataset, out_dir: str, *,
             raise KeyboardInterrupt
         stop["signum"] = signum
 
-    quiet = _QuietCheckpointThreads()
-    logging.getLogger("absl").addFilter(quiet)
+    quiet = _QuietCheckpointThreads().__enter__()  # until the checkpointer is closed and its tasks collected
     handlers = {}
     if threading.current_thread() is threading.main_thread():
         handlers = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -331,7 +404,8 @@ def fit(cfg: PolicyConfig, train_cfg: TrainConfig, dataset, out_dir: str, *,
             if wait:
                 ckpt.wait()
         except Exception as e:  # noqa: BLE001 - the rest propagate unchanged from _write_error
-            raise _write_error(ckpt_dir, e, ckpt.latest_step()) from e
+            quiet.failed = True
+            raise _write_error(ckpt_dir, e, _latest_step(ckpt)) from e
 
     try:
         for step in range(start, end):
@@ -354,7 +428,6 @@ def fit(cfg: PolicyConfig, train_cfg: TrainConfig, dataset, out_dir: str, *,
     finally:
         for sig, old in handlers.items():
             signal.signal(sig, old)
-        logging.getLogger("absl").removeFilter(quiet)
         bar.close()
         try:
             ckpt.wait()
@@ -362,4 +435,5 @@ def fit(cfg: PolicyConfig, train_cfg: TrainConfig, dataset, out_dir: str, *,
             pass
         ckpt.close()
         logger.close()
+        quiet.__exit__()
     return FitResult(state, net, losses, start, meta)

@@ -71,6 +71,35 @@ def test_sample_indices_hand_computed_offset_0():
     np.testing.assert_array_equal(act[8], [8, 8, 8, 8, 8, 8])
 
 
+def test_short_episodes_train_with_padded_windows_at_both_edges():
+    """The default windowing (strides 1/2/3, L_h 3, L_c 8, δ 1: 7 frames of history, 23 of actions) on episodes of
+    1 and 2 frames: observation history before the first frame repeats it, actions past the last frame repeat it."""
+    chunk = ChunkConfig()
+    assert chunk.obs_span == 7 and chunk.action_span == 23
+    current, obs, act = sample_indices(np.array([1, 3]), chunk)
+    # episode 0 = frame 0 alone: with δ = 1 it has no next action, yet its frame trains on the last (only) action
+    # episode 1 = frames 1, 2: frame 1 is a sample (its next action, frame 2, exists); frame 2 has none
+    np.testing.assert_array_equal(current, [0, 1])
+    np.testing.assert_array_equal(obs, [np.zeros((3, 3)), np.ones((3, 3))])
+    np.testing.assert_array_equal(act, [np.zeros(24), np.full(24, 2)])
+    # with δ = 0 every frame is a sample; frame 2's history is [1, 1, 2] at stride 1, [1, 1, 2] at 2 and 3
+    current, obs, act = sample_indices(np.array([1, 3]), ChunkConfig(action_offset=0))
+    np.testing.assert_array_equal(current, [0, 1, 2])
+    np.testing.assert_array_equal(obs[2], [[1, 1, 2], [1, 1, 2], [1, 1, 2]])
+    np.testing.assert_array_equal(act[1], np.tile([1, 2, 2, 2, 2, 2, 2, 2], 3))  # each stride: a[1], then a[2]
+    np.testing.assert_array_equal(act[2], np.full(24, 2))
+
+
+def test_a_short_episode_trains_beside_long_ones():
+    """A dataset of one 1-frame episode and one 30-frame one: both give samples, and batches read only real frames."""
+    t = np.arange(31, dtype=np.float32)
+    buf = ReplayBuffer(data={"action": t[:, None], "state": 10 * t[:, None]}, episode_ends=np.array([1, 31]))
+    ds = SequenceDataset(buf, ChunkConfig(), obs_keys=("state",))
+    assert len(ds) == 1 + 29 and ds.current[0] == 0
+    raw = ds.normalizer.unnormalize("action", ds.get_batch(np.array([0]))["action"])
+    np.testing.assert_allclose(raw, np.zeros((1, 24, 1)), atol=1e-5)
+
+
 def test_single_stride_is_plain_diffusion_policy_window():
     current, obs, act = sample_indices(ENDS, ChunkConfig(strides=(1,), obs_horizon=2, chunk_len=4, action_offset=0))
     assert obs.shape == (9, 1, 2) and act.shape == (9, 4)
@@ -85,7 +114,8 @@ def test_sample_indices_match_the_definition_and_stay_in_episode(strides, lh, lc
     ends = np.cumsum([1, 7, 2, 30, 4])
     current, obs, act = sample_indices(ends, chunk)
     starts = np.concatenate([[0], ends[:-1]])
-    expected_current = [t for s, e in zip(starts, ends) for t in range(s, e) if t + delta <= e - 1]
+    # every frame whose first action lies in its episode; a 1-frame episode with δ = 1 still gives its frame
+    expected_current = [t for s, e in zip(starts, ends) for t in range(s, e) if t + delta <= e - 1 or t == s]
     np.testing.assert_array_equal(current, expected_current)
     for row, t in enumerate(current):
         ep = int(np.searchsorted(ends, t, side="right"))

@@ -11,7 +11,7 @@ import pytest
 import zarr
 
 from experiments import import_data
-from hipolicy_jax.data import ReplayBuffer
+from hipolicy_jax.data import ReplayBuffer, SequenceDataset
 from hipolicy_jax.data.importers import (import_dp_zarr, import_lerobot, import_robomimic, parse_key_map,
                                          robomimic_demo_names)
 from hipolicy_jax.data.validation import DataValidationError, check_source_episode_ends
@@ -520,6 +520,17 @@ def test_lerobot_v3_cli_import_then_train(tmp_path, capsys):
     res = fit(cfg, train_cfg, train_ds, str(tmp_path / "run"), progress=False, tensorboard=False)
     assert len(res.losses) == 4 and np.isfinite(res.losses).all()
 
+    # by default nothing is dropped: the 9-frame episode (shorter than the default chunk's 23-frame action span)
+    # is imported and gives training windows like the others (one per frame with a next action)
+    import_data.main(["lerobot", LEROBOT_V3, str(tmp_path / "all.zarr")])
+    out = capsys.readouterr().out
+    assert "wrote 5 episodes (71 frames)" in out and "too short" not in out
+    full = ReplayBuffer.load(str(tmp_path / "all.zarr"))
+    np.testing.assert_array_equal(full.data["state"], expected["state"])
+    np.testing.assert_array_equal(full.episode_lengths(), [16, 12, 20, 9, 14])
+    ds = SequenceDataset(full, ChunkConfig(), obs_keys=("state",))
+    assert len(ds) == 71 - 5 and np.isin(np.arange(48, 56), ds.current).all()
+
 
 def _v3_drop_episodes_file(root):
     os.remove(os.path.join(root, V3_EPISODES, "file-001.parquet"))
@@ -665,8 +676,14 @@ def test_cli_dry_run_writes_nothing_and_prints_summary(tmp_path, capsys):
     summary = import_data.main(["dp-zarr", src, str(dst), "--key-map", "image=img", "state=state", "--dry-run"])
     out = capsys.readouterr().out
     assert not dst.exists() and "dry run: nothing written" in out
+    # every episode is kept by default (training pads episode edges); --min-length drops by explicit choice
+    assert "kept: 2 episodes, 35 frames" in out and "dropped: 0 episodes (min_length 1)" in out
+    assert "image: (T, 8, 8, 3) uint8" in out and summary.num_frames == 35
+    summary = import_data.main(["dp-zarr", src, "--key-map", "image=img", "state=state", "--dry-run",
+                                "--min-length", "23"])
+    out = capsys.readouterr().out
     assert "kept: 1 episodes, 30 frames" in out and "episode 1: too short: 5 frames < min_length 23" in out
-    assert "image: (T, 8, 8, 3) uint8" in out and summary.num_frames == 30
+    assert summary.num_frames == 30
     import_data.main(["dp-zarr", src, "--dry-run"])  # DST is optional with --dry-run
 
 

@@ -91,7 +91,7 @@ def test_partial_write_and_corrupted_checkpoint_are_reported_and_skipped(tmp_pat
     res = fit(tiny_cfg(), train_cfg, ds, str(out), progress=False, tensorboard=False)
     printed = capsys.readouterr().out
     assert "incomplete checkpoint write 12.orbax-checkpoint-tmp-1234567" in printed
-    assert "step 8 is unreadable" in printed and (ckpts / "corrupt_8").is_dir()
+    assert "step 8 is damaged (unreadable: " in printed and "trying step 4" in printed and (ckpts / "corrupt_8").is_dir()
     assert res.start_step == 4
     np.testing.assert_allclose(res.losses, full.losses[4:], rtol=1e-6)
 

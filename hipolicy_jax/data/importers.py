@@ -24,8 +24,9 @@ the format's default action source when it does not name ``action``. Images (key
 converted to ``(T, H, W, 3) uint8``: floats in [0, 1] are scaled by 255, floats in [0, 255] rounded (the scale is
 decided by the first episode and then required of all), and the conversion is recorded in the summary.
 
-Nothing is dropped silently. Episodes that are empty or shorter than ``min_length`` frames (e.g. the longest stride
-window ``ChunkConfig.action_span``) are dropped and listed with their reason in the ``ImportSummary``; every other
+Nothing is dropped silently. Empty episodes, and episodes shorter than ``min_length`` frames when a caller asks for
+one (default 1: every episode is kept, since training pads episode edges as Diffusion Policy's sampler does), are
+dropped and listed with their reason in the ``ImportSummary``; every other
 problem (missing key, wrong rank, obs/action length mismatch, NaN / Inf, decreasing ``episode_ends``, frames out of
 order, a dtype or shape that disagrees with the metadata) raises ``DataValidationError`` naming the file, the key
 and expected vs actual. Source keys that are not imported are listed in the summary's notes.

@@ -9,8 +9,9 @@ The M strides are laid out in segment order (``chunk.segment_strides``: largest 
 first), and the action chunk concatenates the M segments along time: ``(M*L_c,)``.
 
 Training (``sample_indices``) turns a replay buffer's episode ends into global frame indices once, at dataset build
-time, padding by repeating an episode's first / last frame (Diffusion Policy's sampler convention) so that no
-window crosses an episode boundary. Evaluation (``gather_history``) reads the same windows out of the env's rolling
+time, padding by repeating an episode's first / last frame (Diffusion Policy's sampler convention: observation
+history before the first frame repeats it, actions after the last frame repeat it) so that no window crosses an
+episode boundary and an episode of any length ≥ 1 trains. Evaluation (``gather_history``) reads the same windows out of the env's rolling
 base-rate history of ``chunk.obs_span`` frames, with jax arrays, under jit / vmap.
 """
 
@@ -43,14 +44,15 @@ def sample_indices(episode_ends: np.ndarray, chunk: ChunkConfig) -> tuple[np.nda
       chunk: windowing configuration.
 
     Returns:
-      current: ``(S,)`` int64 current frames t, every frame with ``t + δ`` inside its episode, in time order.
+      current: ``(S,)`` int64 current frames t, every frame with ``t + δ`` inside its episode, in time order; an
+        episode too short for any (one frame with δ = 1) gives its first frame, its actions all the last one's.
       obs_idx: ``(S, M, L_h)`` int64 observation frames per stride (segment order), clamped to the episode.
       act_idx: ``(S, M*L_c)`` int64 action frames, the M segments concatenated in segment order, clamped to the
         episode.
     """
     ends = check_episode_ends(episode_ends, None)
     starts = np.concatenate([[0], ends[:-1]])
-    num_valid = np.maximum(ends - starts - chunk.action_offset, 0)  # t ∈ [start, end-1-δ]
+    num_valid = np.maximum(ends - starts - chunk.action_offset, 1)  # t ∈ [start, max(end-1-δ, start)]
     episode = np.repeat(np.arange(ends.shape[0]), num_valid)
     first_sample = np.concatenate([[0], np.cumsum(num_valid)[:-1]])
     current = starts[episode] + np.arange(episode.shape[0], dtype=np.int64) - first_sample[episode]

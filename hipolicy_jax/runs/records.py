@@ -23,27 +23,19 @@ retrained on another CPU gives losses that differ from the 9th digit on (``resul
 from __future__ import annotations
 
 import copy
-import hashlib
 import json
 import os
 import subprocess
 
-import jax
-import numpy as np
+from hipolicy_jax.checkpoint import tree_sha256
 
 RECORD_VERSION = 2
 
 
 def params_fingerprint(params) -> str:
-    """SHA-256 of a parameter pytree: every leaf's path, dtype, shape and bytes, in path order."""
-    h = hashlib.sha256()
-    leaves = jax.tree_util.tree_flatten_with_path(params)[0]
-    for path, leaf in sorted(leaves, key=lambda kv: jax.tree_util.keystr(kv[0])):
-        x = np.ascontiguousarray(np.asarray(leaf))
-        h.update(jax.tree_util.keystr(path).encode())
-        h.update(f"{x.dtype.str}{x.shape}".encode())
-        h.update(x.tobytes())
-    return h.hexdigest()
+    """SHA-256 of a parameter pytree: every leaf's path, dtype, shape and bytes, in path order (the checksum a
+    checkpoint stores for its trees, ``checkpoint.tree_sha256``)."""
+    return tree_sha256(params)
 
 
 def network(params, final_loss: float | None) -> dict:
