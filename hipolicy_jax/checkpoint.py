@@ -119,6 +119,25 @@ def verify(path: str, step: int, meta: dict, state, normalizer: dict, *, quiet: 
     return True
 
 
+def quiet_failed_reads() -> None:
+    """After a failed orbax read, tensorstore's reads still in flight complete into the asyncio loop orbax has
+    closed, and Python reports each as an unraisable "RuntimeError: Event loop is closed" traceback, after the
+    one-line error. From the first failed read on, drop exactly those reports (``sys.unraisablehook``; others pass
+    through). Idempotent."""
+    previous = sys.unraisablehook
+    if getattr(previous, "drops_closed_loop", False):
+        return
+
+    def hook(report):
+        if report.exc_type is RuntimeError and str(report.exc_value) == "Event loop is closed" and \
+                report.object is None:
+            return
+        previous(report)
+
+    hook.drops_closed_loop = True
+    sys.unraisablehook = hook
+
+
 class Checkpointer:
     """Thin wrapper over ``ocp.CheckpointManager``: save every ``every`` steps, keep the newest ``keep``; every
     save stores the trees' checksums in its meta and every ``restore`` verifies them (``verify``)."""
@@ -220,7 +239,8 @@ def load_policy(directory: str, step: int | None = None) -> LoadedPolicy:
             state, norm, meta = ckpt.restore(step, abstract)
         except CheckpointDamaged as e:
             raise e.with_hint(f"; pass another --step (steps: {sorted(steps)}) or re-train") from None
-        except Exception as e:  # noqa: BLE001 - any read failure: one line naming the checkpoint
+        except Exception as e:
+            quiet_failed_reads()  # noqa: BLE001 - any read failure: one line naming the checkpoint
             raise ValueError(f"checkpoint: {os.path.join(directory, str(step))} is unreadable "
                              f"({type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''}); pass "
                              f"another --step or re-train") from e
@@ -228,4 +248,4 @@ def load_policy(directory: str, step: int | None = None) -> LoadedPolicy:
 
 
 __all__ = ["CHECKED_TREES", "CheckpointDamaged", "Checkpointer", "LoadedPolicy", "checksums", "config_from_dict",
-           "config_to_dict", "load_policy", "tree_sha256", "verify"]
+           "config_to_dict", "load_policy", "quiet_failed_reads", "tree_sha256", "verify"]

@@ -38,7 +38,8 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from hipolicy_jax import jsonio
-from hipolicy_jax.checkpoint import CheckpointDamaged, Checkpointer, config_from_dict, config_to_dict
+from hipolicy_jax.checkpoint import (CheckpointDamaged, Checkpointer, config_from_dict, config_to_dict,
+                                     quiet_failed_reads)
 from hipolicy_jax.config import PolicyConfig, TrainConfig
 from hipolicy_jax.models.policy_net import PolicyNet, init_policy_params, param_count
 from hipolicy_jax import parallel
@@ -232,8 +233,10 @@ def restore_newest_readable(directory: str, abstract, meta: dict):
         except ValueError as e:
             if "different policy config" in str(e):
                 raise
+            quiet_failed_reads()
             why = f"unreadable: {type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''}"
         except Exception as e:  # noqa: BLE001 — any read failure means this step is unusable
+            quiet_failed_reads()
             why = f"unreadable: {type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''}"
         aside = set_aside(directory, step)
         older = [s for s in steps if s < step]

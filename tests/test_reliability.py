@@ -4,11 +4,13 @@ checkpoint and resume exactly, checkpoint write failures that keep the last comm
 import errno
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import time
 
+import jax
 import numpy as np
 import pytest
 from test_training import bimodal_buffer, tiny_cfg
@@ -76,6 +78,135 @@ def test_corrupt_checkpoint_is_one_line(dataset, tmp_path):
         checkpoint.load_policy(str(tmp_path / "checkpoints"))
     with pytest.raises(FileNotFoundError, match=r"no step 7 under .*\(steps: \[.*2\]\)"):
         checkpoint.load_policy(str(tmp_path / "checkpoints"), 7)
+
+
+# ------------------------------------------------------------------------------------------- checked checkpoints
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+
+
+def _stored_places(item_dir, target: bytes) -> list[tuple[str, int, int]]:
+    """Where an array's bytes are stored under a checkpoint item's folder: ``(file, start, end)`` of each raw copy
+    or of each zstd frame that decodes to bytes holding them (orbax's OCDBT data files are zstd frames)."""
+    from numcodecs import Zstd
+
+    places = []
+    for root, _, files in os.walk(item_dir):
+        for f in files:
+            path = os.path.join(root, f)
+            data = open(path, "rb").read()
+            i = data.find(target)
+            if i >= 0:
+                places.append((path, i, i + len(target)))
+                continue
+            starts, m = [], data.find(ZSTD_MAGIC)
+            while m >= 0:
+                starts.append(m)
+                m = data.find(ZSTD_MAGIC, m + 1)
+            starts.append(len(data))
+            for a in range(len(starts) - 1):
+                for b in range(a + 1, len(starts)):  # a frame ends where a later magic starts
+                    try:
+                        decoded = Zstd().decode(data[starts[a]:starts[b]])
+                    except Exception:  # noqa: BLE001 - the magic bytes occurred inside compressed data
+                        continue
+                    if target in decoded:
+                        places.append((path, starts[a], starts[b]))
+                    break
+    return places
+
+
+def _flip_bytes_of(item_dir, array) -> int:
+    """Invert a byte three quarters into every stored copy of ``array``'s bytes under ``item_dir``, as a bad disk
+    or an interrupted copy would; → how many places were damaged."""
+    places = _stored_places(item_dir, np.ascontiguousarray(array).tobytes())
+    for path, start, end in places:
+        with open(path, "r+b") as fh:
+            fh.seek(start + 3 * (end - start) // 4)
+            byte = fh.read(1)
+            fh.seek(-1, os.SEEK_CUR)
+            fh.write(bytes([byte[0] ^ 0xFF]))
+    return len(places)
+
+
+@pytest.fixture(scope="module")
+def two_checkpoints(dataset, tmp_path_factory):
+    """A run stopped after step 2 of 3 with checkpoints at steps 1 and 2, and the same run trained to step 3."""
+    root = tmp_path_factory.mktemp("checked")
+    train = TrainConfig(batch_size=16, num_steps=3, warmup_steps=1, ckpt_every=1, ckpt_keep=3)
+    stopped = fit(tiny_cfg(), train, dataset, str(root / "stopped"), progress=False, tensorboard=False, stop_at=2)
+    full = fit(tiny_cfg(), train, dataset, str(root / "full"), progress=False, tensorboard=False)
+    return root / "stopped", stopped, full, train
+
+
+def _largest_leaf(tree):
+    return max((np.asarray(x) for x in jax.tree.leaves(tree)), key=lambda x: x.size)
+
+
+def test_checkpoints_store_the_checksum_of_every_tree_as_written(two_checkpoints, dataset):
+    run, stopped, _, _ = two_checkpoints
+    loaded = checkpoint.load_policy(str(run / "checkpoints"), 2)
+    stored = loaded.meta["checksums"]
+    assert tuple(stored) == checkpoint.CHECKED_TREES == ("step", "params", "ema_params", "opt_state", "normalizer")
+    assert stored == checkpoint.checksums(stopped.state, dataset.normalizer.to_dict())  # the state at step 2
+    assert stored["params"] != stored["ema_params"] and int(stopped.state.step) == loaded.step == 2
+    np.testing.assert_array_equal(_largest_leaf(loaded.params), _largest_leaf(stopped.state.ema_params))
+
+
+@pytest.mark.parametrize("tree", ["params", "ema_params", "opt_state", "normalizer"])
+def test_a_damaged_tree_is_refused_in_one_line(two_checkpoints, dataset, tree, tmp_path):
+    run, stopped, _, _ = two_checkpoints
+    shutil.copytree(run / "checkpoints", tmp_path / "checkpoints")
+    if tree == "normalizer":
+        damaged = _flip_bytes_of(tmp_path / "checkpoints" / "2" / "normalizer", dataset.normalizer.to_dict()["action"]["scale"])
+    else:
+        damaged = _flip_bytes_of(tmp_path / "checkpoints" / "2" / "state", _largest_leaf(getattr(stopped.state, tree)))
+    assert damaged >= 1
+    with pytest.raises(ValueError) as info:
+        checkpoint.load_policy(str(tmp_path / "checkpoints"))
+    msg = str(info.value)
+    assert "\n" not in msg
+    assert f"step 2 at {tmp_path / 'checkpoints' / '2'} is damaged" in msg or \
+        f"{tmp_path / 'checkpoints' / '2'} is unreadable" in msg, msg
+    if tree == "normalizer":  # its small arrays sit beside OCDBT's own checked records: unreadable or damaged
+        assert "is damaged: its normalizer does not match" in msg or "is unreadable" in msg, msg
+    else:  # a flipped byte inside a zstd frame decodes to other numbers: only the checksum sees it
+        assert isinstance(info.value, checkpoint.CheckpointDamaged) and info.value.trees == (tree,)
+        assert f"is damaged: its {tree} does not match the SHA-256 stored when it was written; pass another " \
+               f"--step (steps: [1, 2]) or re-train" in msg
+    checkpoint.load_policy(str(tmp_path / "checkpoints"), 1)  # the older step is intact and loads
+
+
+def test_resume_falls_back_to_the_newest_checkpoint_that_verifies(two_checkpoints, dataset, tmp_path, capsys):
+    run, stopped, full, train = two_checkpoints
+    shutil.copytree(run, tmp_path / "run")
+    ckpts = tmp_path / "run" / "checkpoints"
+    assert _flip_bytes_of(ckpts / "2" / "state", _largest_leaf(stopped.state.params)) >= 1
+    (ckpts / "corrupt_2").mkdir()  # set aside by an earlier resume: kept, never overwritten
+    capsys.readouterr()
+    res = fit(tiny_cfg(), train, dataset, str(tmp_path / "run"), progress=False, tensorboard=False)
+    printed = capsys.readouterr().out.splitlines()
+    said = [x for x in printed if "step 2 is damaged" in x]
+    assert said == [f"[checkpoint] step 2 is damaged (its params does not match the SHA-256 stored when it was "
+                    f"written); kept aside as {ckpts / 'corrupt_2.1'}, trying step 1"]
+    assert "[checkpoint] resuming from step 1" in printed
+    assert (ckpts / "corrupt_2").is_dir() and (ckpts / "corrupt_2.1" / "state").is_dir()
+    assert res.start_step == 1
+    np.testing.assert_allclose(res.losses, full.losses[1:], rtol=1e-6)  # the same run as if nothing was damaged
+
+
+def test_a_checkpoint_without_checksums_loads_with_a_one_line_note(two_checkpoints, tmp_path, capsys):
+    run, stopped, _, _ = two_checkpoints
+    shutil.copytree(run / "checkpoints", tmp_path / "checkpoints")
+    meta_file = tmp_path / "checkpoints" / "2" / "meta" / "metadata"
+    meta = json.loads(meta_file.read_text())
+    del meta["checksums"]  # as written before checksums were stored
+    meta_file.write_text(json.dumps(meta))
+    capsys.readouterr()
+    loaded = checkpoint.load_policy(str(tmp_path / "checkpoints"))
+    err = capsys.readouterr().err
+    assert err == (f"[checkpoint] step 2 at {tmp_path / 'checkpoints' / '2'} carries no checksum (written before "
+                   f"checksums were stored): loaded unchecked\n")
+    np.testing.assert_array_equal(_largest_leaf(loaded.params), _largest_leaf(stopped.state.ema_params))
 
 
 def test_one_owner_per_run_directory(tmp_path):
