@@ -3,6 +3,10 @@
 Python's ``json`` writes ``NaN`` / ``Infinity``, which are not JSON. Here NaN is written as ``null`` and ±∞ as the
 strings ``"Infinity"`` / ``"-Infinity"``, which ``load`` / ``loads`` turn back into floats (so thresholds such as
 ``[-inf, -1.2, -0.8, inf]`` survive a round trip); NumPy scalars and arrays become numbers and lists, tuples lists.
+
+A stored file that does not read back (``load`` of a truncated or garbled JSON file, ``ReplayBuffer.load`` of a
+damaged zarr buffer) raises ``DamagedFileError``: one line naming the file, what is wrong with it and what to do; a
+campaign skips the run it belongs to and lists it at the end.
 """
 
 from __future__ import annotations
@@ -64,13 +68,16 @@ _SCALAR_LIST = re.compile(r"\[\s*(" + _SCALAR + r"(?:,\s*" + _SCALAR + r")*)\s*\
 
 def dump(obj: Any, path: str, indent: int | None = 2) -> str:
     """Write ``obj`` as strict JSON to ``path`` (creating its directory), indented, with lists of numbers on one
-    line (per-episode outcomes stay small in git); → the path."""
+    line (per-episode outcomes stay small in git); → the path. Written to a temporary sibling renamed into place, so
+    a reader never sees half a file."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     text = dumps(obj, indent=indent)
     if indent is not None:
         text = _SCALAR_LIST.sub(lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]", text)
-    with open(path, "w") as f:
+    partial = f"{path}.partial-{os.getpid()}"  # renamed into place: a write cut off never leaves half a file
+    with open(partial, "w") as f:
         f.write(text + "\n")
+    os.replace(partial, path)
     return path
 
 
@@ -79,9 +86,49 @@ def loads(text: str) -> Any:
     return from_strict(json.loads(text))
 
 
-def load(path: str) -> Any:
-    with open(path) as f:
-        return loads(f.read())
+class DamagedFileError(ValueError):
+    """A stored file that does not read back as it was written; the message is one line: ``<path>: <what is wrong>;
+    <what to do>``. ``path``, ``problem`` and ``hint`` keep its parts (``with_hint`` swaps the advice)."""
+
+    def __init__(self, path: str, problem: str, hint: str = ""):
+        self.path, self.problem, self.hint = str(path), one_line(problem), one_line(hint)
+        super().__init__(f"{self.path}: {self.problem}" + (f"; {self.hint}" if self.hint else ""))
+
+    def with_hint(self, hint: str) -> DamagedFileError:
+        """The same damage with other advice (a caller knows better how that file is made again)."""
+        new = type(self).__new__(type(self))
+        DamagedFileError.__init__(new, self.path, self.problem, hint)
+        return new
 
 
-__all__ = ["INF", "NEG_INF", "dump", "dumps", "from_strict", "load", "loads", "to_strict"]
+def one_line(text: str, limit: int = 200) -> str:
+    """``text``'s first non-empty line, at most ``limit`` characters (an error message quoted inside another)."""
+    line = next((ln.strip() for ln in str(text).splitlines() if ln.strip()), "")
+    return line if len(line) <= limit else line[:limit - 1] + "…"
+
+
+def restore_hint(path: str, redo: str = "delete it so that it is made again") -> str:
+    """The advice for a damaged file the project wrote: restore it from git when it is tracked, else ``redo``."""
+    return f"restore it from git (git checkout -- {path}) or {redo}"
+
+
+def load(path: str, hint: str | None = None) -> Any:
+    """The JSON file at ``path`` (``loads``). A file that is not UTF-8 text or not valid JSON (truncated, garbled)
+    raises ``DamagedFileError`` naming the path, the line and column and ``hint`` (default: ``restore_hint``)."""
+    with open(path, "rb") as f:
+        raw = f.read()
+    hint = restore_hint(path) if hint is None else hint
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise DamagedFileError(path, f"not UTF-8 text (byte 0x{raw[e.start]:02x} at offset {e.start})",
+                               hint) from None
+    try:
+        return loads(text)
+    except json.JSONDecodeError as e:
+        where = "it is empty" if not text.strip() else f"{e.msg}: line {e.lineno}, column {e.colno}"
+        raise DamagedFileError(path, f"not valid JSON ({where})", hint) from None
+
+
+__all__ = ["INF", "NEG_INF", "DamagedFileError", "dump", "dumps", "from_strict", "load", "loads", "one_line",
+           "restore_hint", "to_strict"]

@@ -25,7 +25,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from hipolicy_jax import envs, jsonio
-from hipolicy_jax.checkpoint import config_to_dict
+from hipolicy_jax.checkpoint import CheckpointDamaged, config_to_dict
 from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.data.replay_buffer import collection_lock
 from hipolicy_jax.evaluation import calibration
@@ -293,12 +293,29 @@ def checkpoint_steps(run_dir: str) -> list[int]:
     return sorted(int(d) for d in os.listdir(ckpt) if d.isdigit()) if os.path.isdir(ckpt) else []
 
 
+RECORD_HINT = "delete it to redo that run's evaluations"
+
+
+def load_record_file(path: str) -> dict:
+    """The JSON object in the record file at ``path``, any version; one that does not parse, or holds no JSON
+    object, raises ``jsonio.DamagedFileError`` (one line: the path, what is wrong, restore it from git or delete
+    it)."""
+    hint = jsonio.restore_hint(path, RECORD_HINT)
+    record = jsonio.load(path, hint)
+    if not isinstance(record, dict):
+        kind = {list: "array", str: "string", bool: "boolean", type(None): "null"}.get(type(record), "number")
+        raise jsonio.DamagedFileError(path, f"holds a JSON {kind}, expected a record (a JSON object)", hint)
+    return record
+
+
 def read_record(path: str) -> dict:
     """The record at ``path`` ({} when there is none); a version-1 record is refused (it may mix networks:
-    ``python -m experiments.records upgrade`` stamps its evaluations' networks from git)."""
+    ``python -m experiments.records upgrade`` stamps its evaluations' networks from git). A record that does not
+    parse, or holds no JSON object, raises ``jsonio.DamagedFileError`` (one line: the path, what is wrong, restore
+    it from git or delete it)."""
     if not os.path.exists(path):
         return {}
-    record = read_json(path)
+    record = load_record_file(path)
     if record.get("version", 1) < RECORD_VERSION:
         raise ValueError(f"{path}: record version {record.get('version', 1)}, expected {RECORD_VERSION}; upgrade the "
                          f"records first (python -m experiments.records upgrade)")
@@ -378,7 +395,7 @@ class CostModel:
     that say their cores (a record without them comes from a process that shared its cores with others, so a run
     slowed by other jobs does not skew them), then those that measured their CPU time; for training, those that
     say their cores, then those that measured their CPU time. None when no record of the observation type exists
-    yet."""
+    yet. A record that does not read (``jsonio.DamagedFileError``) is left out and kept in ``damaged``."""
 
     def __init__(self, records: str, runs: str):
         self.records, self.runs = records, runs
@@ -389,8 +406,14 @@ class CostModel:
         self._eval: list[tuple[tuple[str, str, int | None], float, tuple[bool, ...]]] = []
         # budget → CPU-seconds and counts of what the records hold (``measured_*``: with their CPU time measured)
         self._spent: dict[str, dict[str, float]] = {}
-        for path in glob.glob(os.path.join(records, "**", "*.json"), recursive=True):
-            rec = read_json(path)
+        # path → the one-line reason of a record that does not read (left out of the estimates, listed by work_off)
+        self.damaged: dict[str, str] = {}
+        for path in sorted(glob.glob(os.path.join(records, "**", "*.json"), recursive=True)):
+            try:
+                rec = load_record_file(path)
+            except jsonio.DamagedFileError as e:
+                self.damaged[path] = str(e)
+                continue
             parts = os.path.relpath(path, records).split(os.sep)
             if len(parts) < 5 or "training" not in rec:
                 continue
@@ -468,12 +491,17 @@ class CostModel:
 
     def estimate(self, camp: Campaign, jobs: list[Job]) -> list[dict]:
         """Per job: whether it is done (recorded), whether it trains a run, its estimated seconds (0 when done or
-        made by an earlier job; None when unmeasured)."""
+        made by an earlier job; None when unmeasured); a job whose record does not read also has ``damaged``, the
+        one-line reason (``work_off`` skips it)."""
         rows, trained, evaluated = [], set(), set()
         for job in jobs:
             cfg = camp.run_config(job.task, job.col, job.seed, dict(job.changes))
-            done = camp.recorded(job.task, job.col, job.seed, dict(job.changes))
-            needs_train = not done and cfg.out_dir() not in trained and not finished(cfg)
+            try:
+                done = camp.recorded(job.task, job.col, job.seed, dict(job.changes))
+                needs_train = not done and cfg.out_dir() not in trained and not finished(cfg)
+            except jsonio.DamagedFileError as e:  # its record (or run summary) does not read: work_off skips it
+                rows.append({"job": job, "done": False, "trains": False, "seconds": 0.0, "damaged": str(e)})
+                continue
             trained.add(cfg.out_dir())
             evaluation = (cfg.out_dir(), camp._key(job.col, job.seed)[1])  # another table's column may share it
             seconds = 0.0
@@ -540,11 +568,14 @@ class Deadline:
 
 
 def work_off(camp: Campaign, costs: list[dict], run_of: Callable[[Job], str], *, until: str = "",
-             progress: bool = True, periodic: Periodic | None = None) -> None:
+             progress: bool = True, periodic: Periodic | None = None) -> list[tuple[str, str]]:
     """Make every pending evaluation of ``costs`` (``CostModel.estimate`` rows, in order) under ONE progress bar
     with its ETA, each kept in its run's record as it finishes; a job whose estimated time would end after
     ``until`` (``parse_until``) is skipped, as is a run another campaign process holds. Without a progress bar
-    (a background run's log) one line per finished job."""
+    (a background run's log) one line per finished job. A job whose record, run files, demo buffer or checkpoint
+    is damaged (``jsonio.DamagedFileError``, ``CheckpointDamaged``: one line naming the file and what to do) is
+    skipped with that line and the others go on; at the end the skipped ones are listed again (``report_damaged``)
+    and returned as (job, reason)."""
     from tqdm.auto import tqdm
 
     known = [c["seconds"] for c in costs if c["seconds"]]
@@ -556,12 +587,25 @@ def work_off(camp: Campaign, costs: list[dict], run_of: Callable[[Job], str], *,
                unit="s", disable=not progress, dynamic_ncols=True,
                bar_format="{l_bar}{bar}| {percentage:.0f}% of the estimated work [{elapsed}<{remaining}] {postfix}")
     model = None  # the records as they are now: made again after each job that ran (it measured the next ones)
+    damaged: list[tuple[str, str]] = []  # (job, one-line reason) of the jobs skipped for a damaged stored file
+    unread: dict[str, str] = {}  # records the cost models could not read
+
+    def skip(label: str, c: dict, reason: str) -> None:
+        bar.update(round(guess if c["seconds"] is None else c["seconds"]))
+        tqdm.write(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: skipped, {reason}")
+
     for i, c in enumerate(costs):
         task, col, seed, changes = c["job"]
         label = f"{i + 1}/{len(costs)}: {task} seed {seed} {col.label} {changes_text(dict(changes))}"
         bar.set_postfix_str(label)
-        model = model or CostModel(camp.records, camp.runs)
+        if model is None:
+            model = CostModel(camp.records, camp.runs)
+            unread.update(model.damaged)
         now = model.refresh(camp, c)
+        if now.get("damaged"):  # its record does not read: the other jobs go on, this one is listed at the end
+            skip(label, c, now["damaged"])
+            damaged.append((label, now["damaged"]))
+            continue
         if not deadline.admits(now, run_of(c["job"])):
             bar.update(round(guess if c["seconds"] is None else c["seconds"]))
             estimate = "unmeasured" if now["seconds"] is None else f"{now['seconds'] / deadline.cores:.0f} s"
@@ -572,8 +616,12 @@ def work_off(camp: Campaign, costs: list[dict], run_of: Callable[[Job], str], *,
         try:
             evaluation = camp.evaluate(task, col, seed, dict(changes), periodic=periodic)
         except RunLockedError as e:  # another campaign process (a shard started over it) works on this run
-            bar.update(round(guess if c["seconds"] is None else c["seconds"]))
-            tqdm.write(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: skipped, {e}")
+            skip(label, c, str(e))
+            continue
+        except (jsonio.DamagedFileError, CheckpointDamaged) as e:  # a record, demo buffer or checkpoint damaged
+            skip(label, c, str(e))
+            damaged.append((label, str(e)))
+            model = None
             continue
         bar.update(round(guess if c["seconds"] is None else c["seconds"]))
         if not now["done"]:
@@ -582,6 +630,22 @@ def work_off(camp: Campaign, costs: list[dict], run_of: Callable[[Job], str], *,
             print(f"[campaign] {time.strftime('%Y-%m-%d %H:%M:%S')} {label}: "
                   f"{100 * evaluation['success_rate']:.0f} % in {time.perf_counter() - t0:.0f} s", flush=True)
     bar.close()
+    report_damaged(damaged, unread)
+    return damaged
+
+
+def report_damaged(damaged: list[tuple[str, str]], unread: dict[str, str]) -> None:
+    """The end of ``work_off``: one line per job skipped for a damaged stored file (its reason names the file and
+    what to do), then the records the cost estimates left out that no skipped job named."""
+    if damaged:
+        print(f"[campaign] {len(damaged)} job(s) skipped for a damaged stored file; the others went on:", flush=True)
+        for label, reason in damaged:
+            print(f"[campaign]   {label}: {reason}", flush=True)
+    others = {path: reason for path, reason in unread.items() if not any(path in r for _, r in damaged)}
+    if others:
+        print(f"[campaign] {len(others)} record(s) do not read and were left out of the cost estimates:", flush=True)
+        for reason in others.values():
+            print(f"[campaign]   {reason}", flush=True)
 
 
 README_BEGIN = "<!-- campaign tables: written by `python -m experiments.paper campaign` from results/*.md -->"
@@ -641,4 +705,5 @@ def choose_low_regime(tried: list[tuple[dict, float]], low: float = 0.15, high: 
 
 __all__ = ["EXTERNAL_EVAL_SEED", "EXTERNAL_PERIODIC_SEED", "NOTHING_SPENT", "Periodic", "checkpoint_steps", "dp3_metric",
            "external_summary", "README_BEGIN", "README_END", "Campaign", "Column", "choose_low_regime", "evaluation_key",
-           "pilot_candidates", "readme_section", "record_path", "run_summary", "update_readme", "work_off"]
+           "load_record_file", "pilot_candidates", "readme_section", "record_path", "report_damaged", "run_summary",
+           "update_readme", "work_off"]

@@ -11,18 +11,35 @@ Standard keys used by the project (others are allowed and only checked for consi
     action       (T, A)            float
     image        (T, H, W, 3)      uint8
     point_cloud  (T, P, 3 or 6)    float (xyz or xyz+rgb)
+
+Damage on disk is caught where a buffer is read (``ReplayBuffer.load``) and reported as one ``BufferDamaged`` line
+naming the buffer, the part and what to do. ``save`` compresses each chunk with zstd's content checksum, writes every
+chunk (also one holding only the fill value) and stores each array's SHA-256 in its attributes, so in a buffer it
+wrote a changed chunk fails to decode (naming the chunk), a deleted chunk is missing (naming it) and any other change
+(a chunk swapped, metadata edited) fails the SHA-256. A buffer written without them (Diffusion Policy's, or this
+project's before checksums were stored) is checked as far as zarr can: a chunk that fails to decode or metadata that
+does not parse is named; a missing data chunk reads as the array's fill value (zarr leaves out chunks that hold only
+it, so it cannot be told from a deleted one) and is noted on stderr; a missing ``meta/episode_ends`` chunk (never
+all fill value) is an error.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
+import itertools
 import os
 import shutil
-from collections.abc import Iterator, Sequence
+import sys
+import warnings
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 import zarr
+
+from hipolicy_jax.jsonio import DamagedFileError, one_line
+from hipolicy_jax.jsonio import load as load_json
 
 # key -> (layout for messages, number of dimensions, allowed trailing sizes or None, required dtype or None)
 STANDARD_KEYS: dict[str, tuple[str, int, tuple[int, ...] | None, str | None]] = {
@@ -33,6 +50,23 @@ STANDARD_KEYS: dict[str, tuple[str, int, tuple[int, ...] | None, str | None]] = 
 }
 
 _TARGET_CHUNK_BYTES = 4 * 2**20  # zarr chunks along time of about 4 MiB
+SHA256_ATTR = "sha256"  # an array's attribute: the SHA-256 of its dtype, shape and bytes when it was written
+DAMAGED_HINT = "the buffer is damaged: delete it to collect it again (or import it again)"
+_METADATA_FILES = ("zarr.json", ".zgroup", ".zarray", ".zattrs", ".zmetadata")
+
+
+class BufferDamaged(DamagedFileError):
+    """A zarr replay buffer on disk that does not read back as written: one line ``<buffer>: <part> <what is
+    wrong>; <what to do>`` (metadata that does not parse, a chunk that fails to decode or is missing, an array whose
+    SHA-256 differs from the one stored when it was written)."""
+
+
+def array_sha256(arr: np.ndarray) -> str:
+    """SHA-256 of an array's dtype, shape and C-order bytes (what ``save`` stores and ``load`` compares)."""
+    arr = np.ascontiguousarray(arr)
+    h = hashlib.sha256(f"{arr.dtype.str}{tuple(arr.shape)}".encode())
+    h.update(memoryview(arr).cast("B") if arr.size else b"")
+    return h.hexdigest()
 
 
 @contextlib.contextmanager
@@ -180,7 +214,8 @@ class ReplayBuffer:
 
     # ----------------------------------------------------------------------------------------------- storage
     def save(self, path: str | os.PathLike, overwrite: bool = False) -> None:
-        """Write ``data/<key>`` (chunked along time) and ``meta/episode_ends`` to a zarr directory at ``path``."""
+        """Write ``data/<key>`` (chunked along time) and ``meta/episode_ends`` to a zarr directory at ``path``, each
+        array with its SHA-256 and every chunk with zstd's checksum (what ``load`` checks)."""
         path = os.fspath(path)
         if os.path.lexists(path):
             if not overwrite:
@@ -194,23 +229,136 @@ class ReplayBuffer:
         for key, arr in self.data.items():
             frame_bytes = max(1, arr[:1].nbytes)
             chunk_t = int(min(arr.shape[0], max(1, _TARGET_CHUNK_BYTES // frame_bytes)))
-            data_group.create_array(key, data=arr, chunks=(chunk_t,) + tuple(max(1, d) for d in arr.shape[1:]))
-        root.create_group("meta").create_array("episode_ends", data=self.episode_ends)
+            _write_array(data_group, key, arr, (chunk_t,) + tuple(max(1, d) for d in arr.shape[1:]))
+        _write_array(root.create_group("meta"), "episode_ends", self.episode_ends, "auto")
 
     @classmethod
-    def load(cls, path: str | os.PathLike, keys: Sequence[str] | None = None) -> ReplayBuffer:
-        """Read a zarr replay buffer (ours or Diffusion Policy's) into memory; ``keys`` picks a subset of data."""
+    def load(cls, path: str | os.PathLike, keys: Sequence[str] | None = None,
+             hint: str = DAMAGED_HINT) -> ReplayBuffer:
+        """Read a zarr replay buffer (ours or Diffusion Policy's) into memory; ``keys`` picks a subset of data.
+
+        A damaged buffer raises ``BufferDamaged`` (one line: the buffer, the part, what is wrong, then ``hint``):
+        metadata (``zarr.json``) that does not parse or is missing, a chunk that fails to decode or whose file is
+        missing, an array that differs from the SHA-256 stored when it was written."""
         path = os.fspath(path)
         if not os.path.exists(path):
             raise FileNotFoundError(f"no replay buffer at {path!r}")
-        root = zarr.open_group(path, mode="r")
-        if "data" not in root or "meta" not in root or "episode_ends" not in root["meta"]:
+        root = _metadata(path, hint, lambda: zarr.open_group(path, mode="r"))
+        layout = _metadata(path, hint, lambda: "data" in root and "meta" in root and "episode_ends" in root["meta"])
+        if not layout:
             raise ValueError(f"{path!r}: expected zarr groups 'data/<key>' and 'meta/episode_ends'")
-        data_group = root["data"]
-        available = sorted(data_group.array_keys())
+        data_group = _metadata(path, hint, lambda: root["data"])
+        with warnings.catch_warnings():  # a folder without metadata: named below when it is damage
+            warnings.filterwarnings("ignore", message=".*not recognized as a component of a Zarr hierarchy")
+            available = _metadata(path, hint, lambda: sorted(data_group.array_keys()))
         wanted = available if keys is None else list(keys)
         for key in wanted:
             if key not in available:
+                lost = os.path.join(path, "data", key)
+                if os.path.isdir(lost) and not any(os.path.exists(os.path.join(lost, m)) for m in _METADATA_FILES):
+                    raise BufferDamaged(path, f"data/{key} has no zarr.json (its metadata is missing)", hint)
                 raise ValueError(f"{path!r}: key {key!r} not in data, available keys {available}")
-        data = {key: np.asarray(data_group[key][...]) for key in wanted}
-        return cls(data=data, episode_ends=np.asarray(root["meta"]["episode_ends"][...]))
+        folders = os.path.join(path, "data")
+        for name in sorted(os.listdir(folders)) if keys is None and os.path.isdir(folders) else []:
+            # an array whose metadata was deleted is not listed: it must not drop out of the buffer unnoticed
+            folder = os.path.join(folders, name)
+            if (name not in available and os.path.isdir(folder) and not name.startswith(".")
+                    and not any(os.path.exists(os.path.join(folder, m)) for m in _METADATA_FILES)):
+                raise BufferDamaged(path, f"data/{name} has no zarr.json (its metadata is missing)", hint)
+        data = {key: _read_array(path, _metadata(path, hint, lambda k=key: data_group[k]), hint) for key in wanted}
+        ends = _read_array(path, _metadata(path, hint, lambda: root["meta"]["episode_ends"]), hint,
+                           never_fill=True)
+        try:
+            return cls(data=data, episode_ends=ends)
+        except ValueError as e:
+            raise ValueError(f"{path}: {one_line(e)}") from None
+
+
+def _write_array(group, name: str, arr: np.ndarray, chunks) -> None:
+    """One array of a buffer: zstd with its content checksum on every chunk, every chunk written (also one holding
+    only the fill value, so a missing chunk file is damage) and the array's SHA-256 in its attributes."""
+    group.create_array(name, data=arr, chunks=chunks, compressors=zarr.codecs.ZstdCodec(level=0, checksum=True),
+                       attributes={SHA256_ATTR: array_sha256(arr)}, config={"write_empty_chunks": True})
+
+
+def _metadata(path: str, hint: str, read: Callable):
+    """``read()`` of a buffer's zarr metadata; a failure → ``BufferDamaged`` naming the metadata file that does not
+    parse (or the missing root metadata, or zarr's own error)."""
+    try:
+        return read()
+    except (MemoryError, KeyboardInterrupt):
+        raise
+    except Exception as e:
+        raise BufferDamaged(path, _metadata_problem(path) or f"its zarr metadata does not read "
+                                                              f"({type(e).__name__}: {one_line(e)})", hint) from None
+
+
+def _metadata_problem(path: str) -> str | None:
+    """What is wrong with the metadata files of the zarr directory at ``path``: the first that is not valid JSON,
+    or a root without any; None when they all parse."""
+    if not os.path.isdir(path):
+        return None
+    if not any(os.path.exists(os.path.join(path, m)) for m in ("zarr.json", ".zgroup")):
+        return "holds no zarr.json at its root (not a zarr buffer, or its metadata is missing)"
+    for folder, dirs, files in os.walk(path):
+        dirs.sort()
+        for name in sorted(f for f in files if f in _METADATA_FILES):
+            file = os.path.join(folder, name)
+            try:
+                load_json(file, hint="")
+            except DamagedFileError as e:
+                return f"{os.path.relpath(file, path)} is {e.problem}"
+    return None
+
+
+def _chunk_files(path: str, arr) -> Iterator[tuple[tuple[int, ...], str]]:
+    """(chunk coordinates, file relative to the buffer) of every chunk of ``arr``."""
+    for coords in itertools.product(*(range(n) for n in arr.cdata_shape)):
+        yield coords, os.path.join(arr.path, *arr.metadata.encode_chunk_key(coords).split("/"))
+
+
+def _chunk_name(arr, coords: tuple[int, ...], file: str) -> str:
+    """``data/action chunk 3 (data/action/c/3/0)``: by its index along time when only time is chunked."""
+    index = coords[0] if not any(coords[1:]) else coords
+    return f"{arr.path} chunk {index} ({file})"
+
+
+def _read_array(path: str, arr, hint: str, never_fill: bool = False) -> np.ndarray:
+    """All of ``arr`` (a buffer's zarr array), checked: its chunk files present, each decoding, and its SHA-256
+    the stored one (when ``save`` stored it); ``never_fill``: an array none of whose chunks can hold only the fill
+    value (``meta/episode_ends``), so a missing chunk is damage even without a stored SHA-256."""
+    stored = arr.attrs.get(SHA256_ATTR)
+    missing = [(c, f) for c, f in _chunk_files(path, arr) if not os.path.exists(os.path.join(path, f))] \
+        if os.path.isdir(path) else []
+    if missing and (stored is not None or never_fill):
+        coords, file = missing[0]
+        more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+        raise BufferDamaged(path, f"{_chunk_name(arr, coords, file)} is missing{more}", hint)
+    if missing:
+        print(f"[data] {path}: {len(missing)} chunk(s) of {arr.path} have no file (first {missing[0][1]}) and read as "
+              f"its fill value {arr.fill_value}: a buffer written without checksums cannot tell a chunk left out for "
+              f"holding only that value from a deleted one", file=sys.stderr, flush=True)
+    try:
+        values = np.asarray(arr[...])
+    except (MemoryError, KeyboardInterrupt):
+        raise
+    except Exception as e:
+        coords, file, err = _first_bad_chunk(arr, path) or ((), arr.path, e)
+        raise BufferDamaged(path, f"{_chunk_name(arr, coords, file) if coords else arr.path} fails to decode "
+                                  f"({type(err).__name__}: {one_line(err)})", hint) from None
+    if stored is not None and array_sha256(values) != stored:
+        raise BufferDamaged(path, f"{arr.path} does not match the SHA-256 stored when it was written", hint)
+    return values
+
+
+def _first_bad_chunk(arr, path: str) -> tuple[tuple[int, ...], str, Exception] | None:
+    """(coordinates, file, error) of the first chunk of ``arr`` that fails to read; None when each reads alone."""
+    for coords, file in _chunk_files(path, arr):
+        region = tuple(slice(c * s, min((c + 1) * s, n)) for c, s, n in zip(coords, arr.chunks, arr.shape))
+        try:
+            arr[region]
+        except (MemoryError, KeyboardInterrupt):
+            raise
+        except Exception as e:
+            return coords, file, e
+    return None
