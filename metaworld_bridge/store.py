@@ -4,13 +4,15 @@
 ``meta/episode_ends`` the cumulative end of each episode (int64, strictly increasing, last = number of frames).
 Keys written by the bridge: ``state`` (T, 39) float32, ``action`` (T, 4) float32 and, with a camera,
 ``point_cloud`` (T, P, 3) float32. The root's attributes record where the demos came from (task, seeds, camera,
-crop); ``ReplayBuffer.load`` does not need them.
+crop); ``ReplayBuffer.load`` does not need them. Each array stores its SHA-256 and each chunk zstd's checksum, as
+``ReplayBuffer.save`` writes them, so a buffer damaged on disk is named when it is read.
 
 The buffer is written to a temporary sibling and renamed into place, so no reader ever sees a half-written one.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 import shutil
 from collections.abc import Sequence
@@ -41,6 +43,22 @@ def concatenate(episodes: Sequence[dict[str, np.ndarray]]) -> tuple[dict[str, np
     return data, np.cumsum(np.asarray(lengths, np.int64))
 
 
+def array_sha256(arr: np.ndarray) -> str:
+    """SHA-256 of an array's dtype, shape and C-order bytes: ``hipolicy_jax.data.replay_buffer.array_sha256``, which
+    ``ReplayBuffer.load`` compares with the one stored here (this venv does not import the project)."""
+    arr = np.ascontiguousarray(arr)
+    h = hashlib.sha256(f"{arr.dtype.str}{tuple(arr.shape)}".encode())
+    h.update(memoryview(arr).cast("B") if arr.size else b"")
+    return h.hexdigest()
+
+
+def _write_array(group, name: str, arr: np.ndarray, chunks) -> None:
+    """As ``ReplayBuffer.save`` writes an array: zstd with its content checksum on every chunk, every chunk written
+    and the array's SHA-256 in its attributes, so ``ReplayBuffer.load`` names a damaged chunk."""
+    group.create_array(name, data=arr, chunks=chunks, compressors=zarr.codecs.ZstdCodec(level=0, checksum=True),
+                       attributes={"sha256": array_sha256(arr)}, config={"write_empty_chunks": True})
+
+
 def write_buffer(path: str, episodes: Sequence[dict[str, np.ndarray]], attrs: dict | None = None,
                  overwrite: bool = False) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Write ``episodes`` to a zarr directory at ``path`` → (data, episode_ends) as written."""
@@ -59,8 +77,8 @@ def write_buffer(path: str, episodes: Sequence[dict[str, np.ndarray]], attrs: di
     for key, arr in data.items():
         frame_bytes = max(1, arr[:1].nbytes)
         chunk_t = int(min(arr.shape[0], max(1, _TARGET_CHUNK_BYTES // frame_bytes)))
-        group.create_array(key, data=arr, chunks=(chunk_t,) + tuple(max(1, d) for d in arr.shape[1:]))
-    root.create_group("meta").create_array("episode_ends", data=ends)
+        _write_array(group, key, arr, (chunk_t,) + tuple(max(1, d) for d in arr.shape[1:]))
+    _write_array(root.create_group("meta"), "episode_ends", ends, "auto")
     if os.path.lexists(path):
         if os.path.isdir(path) and not os.path.islink(path):
             shutil.rmtree(path)

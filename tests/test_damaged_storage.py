@@ -26,7 +26,7 @@ from hipolicy_jax.campaigns.report import changes_text
 from hipolicy_jax.campaigns.campaign import (RECORD_VERSION, Campaign, Column, CostModel, Job, read_record,
                                              record_path, work_off)
 from hipolicy_jax.checkpoint import config_to_dict
-from hipolicy_jax.data.replay_buffer import BufferDamaged, ReplayBuffer
+from hipolicy_jax.data.replay_buffer import BufferDamaged, ReplayBuffer, array_sha256
 from hipolicy_jax.runs import cli
 from hipolicy_jax.runs.store import write_json
 
@@ -235,6 +235,39 @@ def test_an_unchecked_buffer_is_checked_as_far_as_zarr_can(tmp_path, capsys):
         ReplayBuffer.load(path)
 
 
+def test_a_buffer_the_meta_world_bridge_wrote_is_checked_alike(tmp_path):
+    """The bridge (its own venv, no project import) stores the same SHA-256 and chunk checksums."""
+    from metaworld_bridge.store import write_buffer
+
+    rng = np.random.default_rng(2)
+    path = str(tmp_path / "metaworld_assembly_2.zarr")
+    data, ends = write_buffer(path, [{"state": rng.normal(size=(15, 39)).astype(np.float32),
+                                      "action": rng.normal(size=(15, 4)).astype(np.float32)} for _ in range(2)],
+                              attrs={"task": "assembly"})
+    meta = json.loads(Path(path, "data", "state", "zarr.json").read_text())
+    assert meta["attributes"]["sha256"] == array_sha256(data["state"])
+    assert np.array_equal(ReplayBuffer.load(path).data["state"], data["state"])
+    overwrite(os.path.join(path, "data", "state", "c", "0", "0"), 200, b"\x00" * 4)
+    with pytest.raises(BufferDamaged) as e:
+        ReplayBuffer.load(path)
+    one_line(str(e.value), f"{path}: data/state chunk 0 (data/state/c/0/0) fails to decode (RuntimeError: ", HINT)
+
+
+def test_a_damaged_kept_external_evaluation_is_made_again(tmp_path):
+    """An external evaluation kept in the run dir is a cache: one that does not read is said in one line and made
+    again (the stated fallback), never a traceback."""
+    from hipolicy_jax.runs.external import read_kept
+
+    path = write_json(str(tmp_path / "eval" / "step_10.json"), {"successes": 3, "episodes": 4, "settings": {}})
+    lines: list[str] = []
+    assert read_kept(path, lines.append)["successes"] == 3 and lines == []
+    cut(path)
+    assert read_kept(path, lines.append) is None
+    assert len(lines) == 1
+    one_line(lines[0], f"[external] {path}: not valid JSON (", "; this kept evaluation is made again")
+    assert read_kept(str(tmp_path / "none.json"), lines.append) is None and len(lines) == 1
+
+
 def test_training_on_a_damaged_buffer_ends_in_one_line(tmp_path, monkeypatch):
     """``experiments.train --data <damaged>`` (the dry run: it reads the buffer first) exits with ``error: ...``."""
     path, _ = _buffer(tmp_path / "demos.zarr")
@@ -320,3 +353,32 @@ def test_a_table_from_records_fails_on_a_damaged_record_in_one_line(tmp_path, mo
     message = one_line(str(e.value.code), "error: ", ": not valid JSON (", "delete it to redo that run's evaluations")
     assert any(message.startswith(f"error: {p}: ") for p in paths)
     assert not (tmp_path / "results" / "execution.md").exists()
+
+
+def test_the_campaign_command_skips_a_damaged_record_and_its_plan_lists_it(tmp_path, monkeypatch, capsys):
+    """``experiments.paper campaign`` end to end: the job whose record is damaged is skipped with its one line, the
+    others go on (here skipped by a past --until: nothing trains), the end lists it and the plan names the file."""
+    from experiments import paper
+
+    argv = ["campaign", "--budget", "smoke", "--tasks", "press_button", "--seeds", "0", "--regimes", "r100",
+            "--obs-types", "state", "--runs", str(tmp_path / "runs"), "--records", str(tmp_path / "records"),
+            "--results", str(tmp_path / "results"), "--data", str(tmp_path / "data"), "--no-progress",
+            "--until", "2000-01-01 00:00", "--no-tables"]
+    args = paper.parse_args(argv)
+    camp = tables.campaign(args)
+    jobs, _ = tables.campaign_jobs(args, tables.protocol_tables(args))
+    bad = _recorded(camp, jobs[0])
+    cut(bad)
+    sharing = [j for j in jobs if record_path(camp.records, camp.runs, camp.run_config(
+        j.task, j.col, j.seed, dict(j.changes))) == bad]  # the columns evaluated on that run
+    monkeypatch.setattr(cli, "enable_compilation_cache", lambda *a, **k: None)
+    cli.run_table_cli(paper.parse_args, paper.main, argv)
+    out = capsys.readouterr().out.splitlines()
+    skipped = [line for line in out if f": skipped, {bad}: not valid JSON (" in line]
+    assert len(skipped) == len(sharing) and all(one_line(line, "delete it to redo that run's evaluations")
+                                                for line in skipped)
+    assert sum(": skipped, estimated " in line for line in out) == len(jobs) - len(sharing)  # the others went on
+    assert f"[campaign] {len(sharing)} job(s) skipped for a damaged stored file; the others went on:" in out
+    plan = (tmp_path / "results" / "campaign_plan.md").read_text()
+    assert f"Skipped, their record does not read ({len(sharing)} evaluations;" in plan
+    assert f"- {bad}: not valid JSON (" in plan

@@ -634,6 +634,17 @@ def work_off(camp: Campaign, costs: list[dict], run_of: Callable[[Job], str], *,
     return damaged
 
 
+def damaged_lines(costs: list[dict]) -> list[str]:
+    """A plan's lines on the jobs skipped because their record does not read (``CostModel.estimate`` rows with
+    ``damaged``): a heading and one line per file, with what to do; [] when there are none."""
+    reasons = list(dict.fromkeys(c["damaged"] for c in costs if c.get("damaged")))
+    if not reasons:
+        return []
+    n = sum(bool(c.get("damaged")) for c in costs)
+    return ["", f"Skipped, their record does not read ({n} evaluations; each waits until its file is restored or "
+                f"deleted):", "", *(f"- {r}" for r in reasons)]
+
+
 def report_damaged(damaged: list[tuple[str, str]], unread: dict[str, str]) -> None:
     """The end of ``work_off``: one line per job skipped for a damaged stored file (its reason names the file and
     what to do), then the records the cost estimates left out that no skipped job named."""
@@ -705,5 +716,5 @@ def choose_low_regime(tried: list[tuple[dict, float]], low: float = 0.15, high: 
 
 __all__ = ["EXTERNAL_EVAL_SEED", "EXTERNAL_PERIODIC_SEED", "NOTHING_SPENT", "Periodic", "checkpoint_steps", "dp3_metric",
            "external_summary", "README_BEGIN", "README_END", "Campaign", "Column", "choose_low_regime", "evaluation_key",
-           "load_record_file", "pilot_candidates", "readme_section", "record_path", "report_damaged", "run_summary",
+           "damaged_lines", "load_record_file", "pilot_candidates", "readme_section", "record_path", "report_damaged", "run_summary",
            "update_readme", "work_off"]

@@ -23,8 +23,8 @@ from tqdm.auto import tqdm
 
 from hipolicy_jax.campaigns.budgets import (BUDGETS, DP, METAWORLD_PILOT, METAWORLD_PILOT_STEPS,
                                             METAWORLD_POINTCLOUD_TASKS, METAWORLD_STATE_TASKS, METAWORLD_STEPS)
-from hipolicy_jax.campaigns.campaign import (EXTERNAL_EVAL_SEED, Column, CostModel, Job, Periodic, readme_section,
-                                             update_readme, work_off)
+from hipolicy_jax.campaigns.campaign import (EXTERNAL_EVAL_SEED, Column, CostModel, Job, Periodic, damaged_lines,
+                                             readme_section, update_readme, work_off)
 from hipolicy_jax.campaigns.report import markdown_table, spent_measured_text
 from hipolicy_jax.campaigns.tables import (PAIRED_NOTE, PaperArgs, table_record, campaign, demo_steps,
                                            eval_episodes, grouped_rows, speed_rows, success_by_task_figure,
@@ -291,7 +291,8 @@ def write_plan(args: MainArgs, costs: list[dict], spent: dict[str, float]) -> st
              f"protocol's budget counts them: {spent['wall_core_s'] / 3600:.1f} spent.", "",
              markdown_table(["Task", "Column", "Seed", "Trains", "Estimated CPU-s"],
                             [[c["job"].task, c["job"].col.label, str(c["job"].seed), "yes" if c["trains"] else "",
-                              "–" if c["seconds"] is None else f"{c['seconds']:.0f}"] for c in pending])]
+                              "–" if c["seconds"] is None else f"{c['seconds']:.0f}"] for c in pending]),
+             *damaged_lines(costs)]
     os.makedirs(args.results, exist_ok=True)
     path = os.path.join(args.results, "plan.md")
     with open(path, "w") as f:

@@ -23,7 +23,7 @@ from hipolicy_jax.envs import TASK_PRECISE
 from hipolicy_jax.evaluation import stats
 from hipolicy_jax.campaigns.budgets import BUDGETS, DP, REGIMES, regime_changes, run_config
 from hipolicy_jax.campaigns.campaign import (README_BEGIN, README_END, Campaign, Column, CostModel, Deadline, Job,
-                                            choose_low_regime, parse_until, work_off, pilot_candidates, readme_section, schedule,
+                                            choose_low_regime, damaged_lines, parse_until, work_off, pilot_candidates, readme_section, schedule,
                                         shard, update_readme)
 from hipolicy_jax.runs.lock import RunLockedError
 from hipolicy_jax.campaigns.report import (COUNT_BOUNDS, RATE_BOUNDS, bar_figure, changes_text, ci, cost_note,
@@ -759,7 +759,8 @@ def write_plan(args: "CampaignArgs", costs: list[dict]) -> str:
               "batch, else of its observation type; evaluation seconds of the same task, strategy and stride "
               "count, preferring evaluations made by the compacted rollout, then records that state their "
               "cores)."), "",
-             markdown_table(["Regime", "Column", "Recorded", "Runs to train", "CPU-hours left"], rows)]
+             markdown_table(["Regime", "Column", "Recorded", "Runs to train", "CPU-hours left"], rows),
+             *damaged_lines(costs)]
     os.makedirs(args.results, exist_ok=True)
     path = os.path.join(args.results, "campaign_plan.md")
     with open(path, "w") as f:

@@ -28,6 +28,7 @@ import time
 
 import numpy as np
 
+from hipolicy_jax import jsonio
 from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.envs import external
 from hipolicy_jax.runs.records import params_fingerprint
@@ -96,9 +97,8 @@ def evaluate_run(run_dir: str, *, episodes: int, first_seed: int, max_steps: int
     settings = {"episodes": episodes, "first_seed": first_seed, "max_steps": max_steps,
                 "inference": backend.metadata.get("inference"), "thresholds": backend.metadata.get("thresholds")}
     path = kept_path(run_dir, backend.metadata.get("checkpoint_step"), settings) if keep else None
-    if path is not None and os.path.exists(path):
-        with open(path) as f:
-            kept = json.load(f)
+    kept = read_kept(path, log) if path is not None else None
+    if kept is not None:
         if kept.get("params_sha256") == fingerprint and kept.get("settings") == settings:
             log(f"[external] {name} step {kept['checkpoint_step']}: {kept['successes']}/{kept['episodes']} success "
                 f"(kept in {os.path.relpath(path)})")
@@ -132,6 +132,23 @@ def evaluate_run(run_dir: str, *, episodes: int, first_seed: int, max_steps: int
     log(f"[external] {name} step {record['checkpoint_step']}: {record['successes']}/{record['episodes']} success "
         f"({record['seconds']['total']:.0f} s)")
     return record
+
+
+def read_kept(path: str, log=print) -> dict | None:
+    """The evaluation ``evaluate_run(keep=True)`` kept at ``path``; None when there is none, or when it does not
+    read (not valid JSON, not an object): then one line through ``log`` names the file and says it is made again
+    (it is only a cache of an evaluation that can be remade)."""
+    if not os.path.exists(path):
+        return None
+    try:
+        kept = jsonio.load(path, hint="")
+    except jsonio.DamagedFileError as e:
+        log(f"[external] {e.path}: {e.problem}; this kept evaluation is made again")
+        return None
+    if not isinstance(kept, dict):
+        log(f"[external] {path}: holds no JSON object; this kept evaluation is made again")
+        return None
+    return kept
 
 
 def external_summary(record: dict) -> dict:
@@ -200,4 +217,4 @@ def evaluate_report(run_dir: str, inference: InferenceConfig, *, episodes: int, 
 
 
 __all__ = ["check_bridge", "collect_demos", "evaluate_report", "evaluate_run", "external_summary", "kept_path",
-           "summary"]
+           "read_kept", "summary"]
