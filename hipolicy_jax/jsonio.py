@@ -91,7 +91,8 @@ class DamagedFileError(ValueError):
     <what to do>``. ``path``, ``problem`` and ``hint`` keep its parts (``with_hint`` swaps the advice)."""
 
     def __init__(self, path: str, problem: str, hint: str = ""):
-        self.path, self.problem, self.hint = str(path), one_line(problem), one_line(hint)
+        self.path = str(path)
+        self.problem, self.hint = (" ".join(str(t).split()) for t in (problem, hint))  # one line, however long
         super().__init__(f"{self.path}: {self.problem}" + (f"; {self.hint}" if self.hint else ""))
 
     def with_hint(self, hint: str) -> DamagedFileError:

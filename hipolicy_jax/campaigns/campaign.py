@@ -716,5 +716,5 @@ def choose_low_regime(tried: list[tuple[dict, float]], low: float = 0.15, high: 
 
 __all__ = ["EXTERNAL_EVAL_SEED", "EXTERNAL_PERIODIC_SEED", "NOTHING_SPENT", "Periodic", "checkpoint_steps", "dp3_metric",
            "external_summary", "README_BEGIN", "README_END", "Campaign", "Column", "choose_low_regime", "evaluation_key",
-           "damaged_lines", "load_record_file", "pilot_candidates", "readme_section", "record_path", "report_damaged", "run_summary",
-           "update_readme", "work_off"]
+           "damaged_lines", "load_record_file", "pilot_candidates", "readme_section", "record_path", "report_damaged",
+           "run_summary", "update_readme", "work_off"]

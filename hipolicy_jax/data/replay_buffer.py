@@ -271,7 +271,7 @@ class ReplayBuffer:
         try:
             return cls(data=data, episode_ends=ends)
         except ValueError as e:
-            raise ValueError(f"{path}: {one_line(e)}") from None
+            raise ValueError(f"{path}: {' '.join(str(e).split())}") from None
 
 
 def _write_array(group, name: str, arr: np.ndarray, chunks) -> None:
