@@ -424,3 +424,86 @@ def test_no_startup_noise():
     proc = subprocess.run([sys.executable, "-c", "import hipolicy_jax.envs, hipolicy_jax.evaluation"],
                           capture_output=True, text=True, timeout=300, env=dict(os.environ, JAX_PLATFORMS="cpu"))
     assert proc.returncode == 0 and proc.stdout == "" and "warp" not in proc.stderr, (proc.stdout, proc.stderr)
+
+
+# ------------------------------------------------------------------------ failed writes, as a user sees them (CLI)
+def _mount(*args) -> None:
+    subprocess.run(["mount", *args], check=True, capture_output=True, text=True)
+
+
+@pytest.fixture(scope="module")
+def cli_demos(tmp_path_factory):
+    """A path for 10 press_button demos: the first CLI run below collects them, the others reuse them."""
+    return str(tmp_path_factory.mktemp("cli_demos") / "press_button_10.zarr")
+
+
+def _train_cli(out, data, *flags, env=None) -> subprocess.Popen:
+    """``python -m experiments.train`` on the default task with a tiny network, as a user runs it."""
+    cmd = [sys.executable, "-m", "experiments.train", "--episodes", "10", "--data", data, "--out", str(out),
+           "--policy.model.size", "tiny", "--no-final-eval", "--no-progress", "--eval.every", "0", *flags]
+    return subprocess.Popen(cmd, cwd=os.path.dirname(os.path.dirname(__file__)), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, JAX_PLATFORMS="cpu", **(env or {})))
+
+
+def _wait_for(path, proc, timeout=600.0) -> None:
+    deadline = time.time() + timeout
+    while not os.path.isdir(path):
+        assert proc.poll() is None, proc.communicate()[1][-3000:]
+        assert time.time() < deadline, f"{path} never appeared"
+        time.sleep(0.02)
+
+
+def _one_line_error(proc, timeout=600) -> str:
+    """The process's stderr, asserted to be exactly one 'error: ...' line, with exit status 1."""
+    _, err = proc.communicate(timeout=timeout)
+    assert proc.returncode == 1, err[-3000:]
+    assert err.count("\n") == 1 and err.startswith("error: "), err[-3000:]
+    return err.strip()
+
+
+needs_root = pytest.mark.skipif(os.geteuid() != 0, reason="mounts a tmpfs / a read-only bind mount: needs root")
+
+
+@pytest.mark.slow
+@needs_root
+def test_disk_full_during_training_is_one_line_on_stderr(tmp_path, cli_demos):
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    _mount("-t", "tmpfs", "-o", "size=3m", "tmpfs", str(disk))
+    try:  # the tiny network's optimiser state alone is larger than 3 MiB: the first checkpoint cannot be written
+        err = _one_line_error(_train_cli(disk / "run", cli_demos, "--train.num-steps", "20"))
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)
+    assert f"error: [Errno 28] writing a checkpoint to {disk / 'run' / 'checkpoints'} failed (No space left on " \
+           f"device; " in err and "no checkpoint was committed yet: free space and rerun the same command" in err
+
+
+@pytest.mark.slow
+@needs_root
+def test_checkpoints_turning_read_only_during_training_is_one_line_on_stderr(tmp_path, cli_demos):
+    out = tmp_path / "run"
+    proc = _train_cli(out, cli_demos, "--train.num-steps", "600", "--train.ckpt-every", "300")
+    ckpts = out / "checkpoints"
+    _wait_for(ckpts / "1", proc)  # the first checkpoint committed; the next is due at step 300
+    _mount("--bind", str(ckpts), str(ckpts))
+    try:
+        _mount("-o", "remount,bind,ro", str(ckpts))
+        err = _one_line_error(proc)
+    finally:
+        subprocess.run(["umount", "-l", str(ckpts)], check=False)
+    assert f"error: [Errno 30] writing a checkpoint to {ckpts} failed (Read-only file system; " in err
+    assert "the last committed checkpoint (step 1) is intact: make it writable and rerun the same command" in err
+    assert sorted(os.listdir(ckpts)) == ["1"]
+
+
+@pytest.mark.slow
+def test_run_directory_removed_during_training_is_one_line_on_stderr(tmp_path, cli_demos):
+    out = tmp_path / "run"
+    proc = _train_cli(out, cli_demos, "--train.num-steps", "600", "--train.ckpt-every", "300")
+    _wait_for(out / "checkpoints" / "1", proc)
+    shutil.rmtree(out)
+    err = _one_line_error(proc)
+    assert err == (f"error: [Errno 2] writing a checkpoint to {out / 'checkpoints'} failed (No such file or "
+                   f"directory): the directory was removed during training; rerun the same command to start again")
+    assert not out.exists()  # nothing made it again behind the user's back
