@@ -36,7 +36,8 @@ SECTIONS = (("sampling", "One-call N-sample latency (the paper's sample-times ta
             ("small_matmul", "The N = 1 bound one kernel at a time: XLA's small-M dot against the read bandwidth"),
             ("tradeoff", "Latency–success trade-off"),
             ("delay", "Asynchronous execution: success under inference delay"),
-            ("serving", "Policy serving: in-process, exported, websocket round trip"))
+            ("serving", "Policy serving: in-process, exported, websocket round trip"),
+            ("checkpoint_load", "Checked checkpoints: what verifying the checksums costs a load (interleaved, one run)"))
 
 
 def _load(results_dir: str, name: str, device: str):

@@ -82,9 +82,20 @@ def tree_sha256(tree) -> str:
 
 def checksums(state, normalizer: dict) -> dict[str, str]:
     """``{tree: SHA-256}`` of a ``TrainState`` and a normaliser's ``to_dict()``, for ``CHECKED_TREES``."""
-    trees = {"step": state.step, "params": state.params, "ema_params": state.ema_params,
-             "opt_state": state.opt_state, "normalizer": normalizer}
-    return {name: tree_sha256(trees[name]) for name in CHECKED_TREES}
+    return tree_checksums(_named_trees(state, normalizer))
+
+
+def tree_checksums(trees: dict) -> dict[str, str]:
+    """``{name: SHA-256}`` of named trees, hashed on a thread each (hashlib releases the GIL)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=min(len(trees), os.cpu_count() or 1) or 1) as pool:
+        return dict(zip(trees, pool.map(tree_sha256, trees.values())))
+
+
+def _named_trees(state, normalizer: dict) -> dict:
+    return {"step": state.step, "params": state.params, "ema_params": state.ema_params,
+            "opt_state": state.opt_state, "normalizer": normalizer}
 
 
 class CheckpointDamaged(ValueError):
@@ -103,17 +114,18 @@ class CheckpointDamaged(ValueError):
         return CheckpointDamaged(self.path, self.step, self.trees, hint)
 
 
-def verify(path: str, step: int, meta: dict, state, normalizer: dict, *, quiet: bool = False) -> bool:
-    """Check restored trees against ``meta["checksums"]``; → True when checked, False for a checkpoint written
-    before checksums were stored (noted in one line on stderr unless ``quiet``). Raises ``CheckpointDamaged``."""
+def verify(path: str, step: int, meta: dict, trees: dict, *, quiet: bool = False) -> bool:
+    """Check restored named trees (``{name: tree}``, names from ``CHECKED_TREES``) against ``meta["checksums"]``;
+    → True when checked, False for a checkpoint written before checksums were stored (noted in one line on stderr
+    unless ``quiet``). Raises ``CheckpointDamaged`` naming every tree that differs."""
     stored = meta.get("checksums")
     if not stored:
         if not quiet:
             print(f"[checkpoint] step {step} at {path} carries no checksum (written before checksums were stored): "
                   f"loaded unchecked", file=sys.stderr, flush=True)
         return False
-    read = checksums(state, normalizer)
-    damaged = tuple(tree for tree in CHECKED_TREES if stored.get(tree) != read[tree])
+    read = tree_checksums(trees)
+    damaged = tuple(tree for tree in CHECKED_TREES if tree in read and stored.get(tree) != read[tree])
     if damaged:
         raise CheckpointDamaged(path, step, damaged)
     return True
@@ -180,8 +192,24 @@ class Checkpointer:
                                   normalizer=ocp.args.StandardRestore(), meta=ocp.args.JsonRestore())
         r = self._mgr.restore(step, args=args)
         if check:
-            verify(self.step_path(step), step, r.meta, r.state, r.normalizer, quiet=quiet)
+            verify(self.step_path(step), step, r.meta, _named_trees(r.state, r.normalizer), quiet=quiet)
         return r.state, r.normalizer, r.meta
+
+    def restore_policy(self, step: int, abstract_params, *, check: bool = True, quiet: bool = False
+                       ) -> tuple[Any, dict, dict]:
+        """→ (EMA parameters, normalizer dict, meta): what a trained policy needs, read alone (orbax's partial
+        restore: a quarter of a train state's bytes, no optimiser state) and verified against the stored checksums
+        of the step, the EMA parameters and the normaliser (``check=False`` only for the benchmark)."""
+        device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+        abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device),
+                                {"step": jax.ShapeDtypeStruct((), np.int32), "ema_params": abstract_params})
+        state = ocp.args.PyTreeRestore(item=abstract, restore_args=ocp.checkpoint_utils.construct_restore_args(abstract),
+                                       partial_restore=True)
+        r = self._mgr.restore(step, args=ocp.args.Composite(state=state, normalizer=ocp.args.StandardRestore(),
+                                                             meta=ocp.args.JsonRestore()))
+        if check:
+            verify(self.step_path(step), step, r.meta, {**r.state, "normalizer": r.normalizer}, quiet=quiet)
+        return r.state["ema_params"], r.normalizer, r.meta
 
     def restore_meta(self, step: int) -> dict:
         return self._mgr.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta
@@ -212,8 +240,6 @@ def load_policy(directory: str, step: int | None = None) -> LoadedPolicy:
     """Rebuild the network from a checkpoint directory and restore its (EMA) parameters and normaliser."""
     from hipolicy_jax.data.normalizer import Normalizer
     from hipolicy_jax.models.policy_net import PolicyNet, init_policy_params
-    from hipolicy_jax.training import init_train_state, make_optimizer
-    from hipolicy_jax.config import TrainConfig
 
     if not os.path.isdir(directory):
         raise FileNotFoundError(f"checkpoint: {directory} does not exist")
@@ -228,23 +254,20 @@ def load_policy(directory: str, step: int | None = None) -> LoadedPolicy:
         try:
             meta = ckpt.restore_meta(step)
             cfg = config_from_dict(PolicyConfig, meta["policy"])
-            train_cfg = config_from_dict(TrainConfig, meta["train"])
             action_dim = int(meta["action_dim"])
             example_obs = {k: np.zeros((1, cfg.chunk.num_freqs, cfg.chunk.obs_horizon, *s), np.float32)
                            for k, s in meta["obs_shapes"].items()}
             net = PolicyNet(cfg, action_dim)
-            tx = make_optimizer(train_cfg)
-            abstract = jax.eval_shape(
-                lambda: init_train_state(init_policy_params(cfg, action_dim, example_obs, jax.random.key(0)), tx))
-            state, norm, meta = ckpt.restore(step, abstract)
+            abstract = jax.eval_shape(lambda: init_policy_params(cfg, action_dim, example_obs, jax.random.key(0)))
+            ema_params, norm, meta = ckpt.restore_policy(step, abstract)
         except CheckpointDamaged as e:
             raise e.with_hint(f"; pass another --step (steps: {sorted(steps)}) or re-train") from None
-        except Exception as e:
-            quiet_failed_reads()  # noqa: BLE001 - any read failure: one line naming the checkpoint
+        except Exception as e:  # noqa: BLE001 - any read failure: one line naming the checkpoint
+            quiet_failed_reads()
             raise ValueError(f"checkpoint: {os.path.join(directory, str(step))} is unreadable "
                              f"({type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''}); pass "
                              f"another --step or re-train") from e
-    return LoadedPolicy(cfg, net, state.ema_params, Normalizer.from_dict(norm), meta, int(step))
+    return LoadedPolicy(cfg, net, ema_params, Normalizer.from_dict(norm), meta, int(step))
 
 
 __all__ = ["CHECKED_TREES", "CheckpointDamaged", "Checkpointer", "LoadedPolicy", "checksums", "config_from_dict",

@@ -64,6 +64,20 @@ def test_train_step_benchmark(tmp_path):
 
 
 @pytest.mark.slow
+def test_checkpoint_load_benchmark(tmp_path):
+    from benchmarks import checkpoint_load
+
+    checkpoint_load.main(["--sizes", "tiny", "--rounds", "2", "--out-dir", str(tmp_path)])
+    res = _load(tmp_path, "checkpoint_load")
+    (row,) = res["rows"]
+    _finite(row, ["policy_checked_median_s", "full_unchecked_median_s", "full_checked_median_s",
+                  "policy_checksums_median_s", "policy_load_vs_before", "resume_vs_before"])
+    assert row["size"] == "tiny" and all(len(v) == 2 for v in row["times_s"].values())
+    assert row["policy_load_vs_before"] == pytest.approx(row["policy_checked_median_s"] / row["full_unchecked_median_s"])
+    assert "a policy load takes" in res["note"] and res["machine"]
+
+
+@pytest.mark.slow
 def test_rollout_benchmark(tmp_path):
     rollout.main(["--size", "tiny", "--batches", "2", "--num-samples", "2", "--num-steps", "2",
                   "--max-steps", "8", "--repeats", "2", "--out-dir", str(tmp_path)])
@@ -200,7 +214,7 @@ def test_tradeoff_cheapest_and_spearman():
 
 
 @pytest.mark.parametrize("module", [sampling, train_step, rollout, optimisation, convolutions, tradeoff, "delay",
-                                    "serving", "profile"])
+                                    "serving", "profile", "checkpoint_load"])
 def test_benchmark_flags_parse(module):
     if isinstance(module, str):
         import importlib

@@ -154,26 +154,35 @@ def test_checkpoints_store_the_checksum_of_every_tree_as_written(two_checkpoints
 
 @pytest.mark.parametrize("tree", ["params", "ema_params", "opt_state", "normalizer"])
 def test_a_damaged_tree_is_refused_in_one_line(two_checkpoints, dataset, tree, tmp_path):
-    run, stopped, _, _ = two_checkpoints
-    shutil.copytree(run / "checkpoints", tmp_path / "checkpoints")
+    """A policy load (evaluate, calibrate, export, serve) reads and verifies the step, the EMA parameters and the
+    normaliser; training's resume reads and verifies every tree, the raw parameters and optimiser state too."""
+    run, stopped, _, train = two_checkpoints
+    shutil.copytree(run, tmp_path / "run")
+    ckpts = tmp_path / "run" / "checkpoints"
     if tree == "normalizer":
-        damaged = _flip_bytes_of(tmp_path / "checkpoints" / "2" / "normalizer", dataset.normalizer.to_dict()["action"]["scale"])
+        damaged = _flip_bytes_of(ckpts / "2" / "normalizer", dataset.normalizer.to_dict()["action"]["scale"])
     else:
-        damaged = _flip_bytes_of(tmp_path / "checkpoints" / "2" / "state", _largest_leaf(getattr(stopped.state, tree)))
+        damaged = _flip_bytes_of(ckpts / "2" / "state", _largest_leaf(getattr(stopped.state, tree)))
     assert damaged >= 1
+    if tree in ("params", "opt_state"):  # not part of a trained policy: its load does not read them
+        loaded = checkpoint.load_policy(str(ckpts))
+        np.testing.assert_array_equal(_largest_leaf(loaded.params), _largest_leaf(stopped.state.ema_params))
+        with pytest.raises(checkpoint.CheckpointDamaged, match=rf"step 2 at .* is damaged: its {tree} does not"):
+            with checkpoint.Checkpointer(str(ckpts)) as ckpt:  # what resume reads
+                ckpt.restore(2, jax.eval_shape(lambda: stopped.state))
+        return
     with pytest.raises(ValueError) as info:
-        checkpoint.load_policy(str(tmp_path / "checkpoints"))
+        checkpoint.load_policy(str(ckpts))
     msg = str(info.value)
     assert "\n" not in msg
-    assert f"step 2 at {tmp_path / 'checkpoints' / '2'} is damaged" in msg or \
-        f"{tmp_path / 'checkpoints' / '2'} is unreadable" in msg, msg
     if tree == "normalizer":  # its small arrays sit beside OCDBT's own checked records: unreadable or damaged
-        assert "is damaged: its normalizer does not match" in msg or "is unreadable" in msg, msg
+        assert f"step 2 at {ckpts / '2'} is damaged: its normalizer does not match" in msg or \
+            f"{ckpts / '2'} is unreadable" in msg, msg
     else:  # a flipped byte inside a zstd frame decodes to other numbers: only the checksum sees it
         assert isinstance(info.value, checkpoint.CheckpointDamaged) and info.value.trees == (tree,)
-        assert f"is damaged: its {tree} does not match the SHA-256 stored when it was written; pass another " \
-               f"--step (steps: [1, 2]) or re-train" in msg
-    checkpoint.load_policy(str(tmp_path / "checkpoints"), 1)  # the older step is intact and loads
+        assert msg == (f"checkpoint: step 2 at {ckpts / '2'} is damaged: its {tree} does not match the SHA-256 "
+                       f"stored when it was written; pass another --step (steps: [1, 2]) or re-train")
+    checkpoint.load_policy(str(ckpts), 1)  # the older step is intact and loads
 
 
 def test_resume_falls_back_to_the_newest_checkpoint_that_verifies(two_checkpoints, dataset, tmp_path, capsys):
