@@ -6,10 +6,12 @@ A checkpoint is only listed by orbax once its write committed, so a run killed m
 previous complete step.
 
 Checked: ``meta["checksums"]`` holds the SHA-256 (``tree_sha256``) of every saved tree (``CHECKED_TREES``: the
-step, parameters, EMA parameters, optimiser state and normaliser), computed from the arrays before the write; every
-``restore`` recomputes them from what it read and raises ``CheckpointDamaged`` (one line: step, tree, path) on a
-mismatch, so damaged files (a bad disk, an interrupted copy, a sync tool) are never used silently. A checkpoint
-written before checksums were stored loads with a one-line note that it is unchecked.
+step, parameters, EMA parameters, optimiser state and normaliser), computed from the arrays before the write. Every
+load recomputes them for what it read — ``restore`` (training's resume) all five, ``restore_policy`` (``load_policy``:
+evaluate, calibrate, export, serve) the step, EMA parameters and normaliser it reads alone — and raises
+``CheckpointDamaged`` (one line: step, trees, path) on a mismatch, so damaged files (a bad disk, an interrupted copy,
+a sync tool) are never used silently. A checkpoint written before checksums were stored loads with a one-line note
+that it is unchecked.
 """
 
 from __future__ import annotations
@@ -203,8 +205,8 @@ class Checkpointer:
         device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
         abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device),
                                 {"step": jax.ShapeDtypeStruct((), np.int32), "ema_params": abstract_params})
-        state = ocp.args.PyTreeRestore(item=abstract, restore_args=ocp.checkpoint_utils.construct_restore_args(abstract),
-                                       partial_restore=True)
+        restore_args = ocp.checkpoint_utils.construct_restore_args(abstract)
+        state = ocp.args.PyTreeRestore(item=abstract, restore_args=restore_args, partial_restore=True)
         r = self._mgr.restore(step, args=ocp.args.Composite(state=state, normalizer=ocp.args.StandardRestore(),
                                                              meta=ocp.args.JsonRestore()))
         if check:
@@ -271,4 +273,4 @@ def load_policy(directory: str, step: int | None = None) -> LoadedPolicy:
 
 
 __all__ = ["CHECKED_TREES", "CheckpointDamaged", "Checkpointer", "LoadedPolicy", "checksums", "config_from_dict",
-           "config_to_dict", "load_policy", "quiet_failed_reads", "tree_sha256", "verify"]
+           "config_to_dict", "load_policy", "quiet_failed_reads", "tree_checksums", "tree_sha256", "verify"]

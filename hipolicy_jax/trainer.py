@@ -130,10 +130,10 @@ class _QuietCheckpointThreads(logging.Filter):
         the same failure when their signals time out, after ``fit`` has raised it as one line."""
         if self.failed:
             release_waiting_writers()
-        self.dropped += retrieve_failed_writes(self.failed)
-        if not self.failed:
-            for name in ("absl", "asyncio"):
-                logging.getLogger(name).removeFilter(self)
+            self.dropped += retrieve_failed_writes()
+            return
+        for name in ("absl", "asyncio"):
+            logging.getLogger(name).removeFilter(self)
 
 
 def release_waiting_writers() -> int:
@@ -152,11 +152,11 @@ def release_waiting_writers() -> int:
     return released
 
 
-def retrieve_failed_writes(failed: bool) -> int:
+def retrieve_failed_writes() -> int:
     """Silence what a failed orbax write leaves behind, to be logged when it is collected (possibly at the
     interpreter's exit, after the one-line error): mark the exceptions of its finished, failed tasks as retrieved
-    (``Future.exception()``) and, after a failure (``failed``), close its coroutines that were created but never
-    started (they would warn "never awaited"). Call once orbax's writers have stopped; → how many were silenced."""
+    (``Future.exception()``) and close its coroutines that were created but never started (they would warn "never
+    awaited"). Call once orbax's writers have stopped; → how many were silenced."""
     gc.collect()
     count = 0
     for obj in gc.get_objects():
@@ -164,7 +164,7 @@ def retrieve_failed_writes(failed: bool) -> int:
             error = obj.exception()  # retrieving it is the point
             if error is not None and "orbax" in repr(obj) + str(error):
                 count += 1
-        elif failed and inspect.iscoroutine(obj) and "orbax" in obj.cr_code.co_filename and \
+        elif inspect.iscoroutine(obj) and "orbax" in obj.cr_code.co_filename and \
                 inspect.getcoroutinestate(obj) == inspect.CORO_CREATED:
             obj.close()
             count += 1
@@ -248,12 +248,9 @@ def restore_newest_readable(directory: str, abstract, meta: dict):
             return state, step
         except CheckpointDamaged as e:
             why = e.what()
-        except ValueError as e:
-            if "different policy config" in str(e):
-                raise
-            quiet_failed_reads()
-            why = f"unreadable: {type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''}"
         except Exception as e:  # noqa: BLE001 — any read failure means this step is unusable
+            if isinstance(e, ValueError) and "different policy config" in str(e):
+                raise
             quiet_failed_reads()
             why = f"unreadable: {type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''}"
         aside = set_aside(directory, step)
