@@ -18,9 +18,12 @@ frequency first); the condition ``cond`` is ``(B, M, Dc)`` in the same order. Co
   second block's are ``down_dims[0]``-channel features.
 
   The release builds the attention with ``torch.nn.MultiheadAttention`` and its default ``batch_first=False`` but
-  feeds ``(B, M+1, D)`` tokens, so its attention actually runs across the *batch* axis (with the M+1 tokens as the
-  batch) and its "global feature" is the same for every sample of a batch and mixes samples. Here attention runs
-  over the ``M+1`` tokens of each sample, as the paper describes: no information crosses the batch axis.
+  feeds ``(B, M+1, D)`` tokens, so its attention runs along the *batch* axis, separately at each of the M+1 token
+  positions. The CLS position holds B copies of the one learned CLS token: its scores are all equal, the softmax is
+  uniform and its output is ``out_proj(v_proj(cls))``. So the release's "global feature" is a learned constant,
+  independent of the input and of the batch (the segment positions do attend across samples, but their outputs are
+  discarded), and the paper's fusion ablation compared against a learned bias. Here attention runs over the ``M+1``
+  tokens of each sample, as the paper describes: no information crosses the batch axis.
   When ``L_c*C_in`` is not a multiple of ``fusion_heads`` the query/key/value width is rounded up to the next
   multiple (the output projection still returns ``L_c*C_in``); when it is a multiple (every release setting) the
   attention has the release's shape.
@@ -280,7 +283,8 @@ class SegmentFusion(nn.Module):
 
     ``(B, num_segments * L, C) -> (B, L, C)``: tokens ``[CLS, flatten(seg_0), ..., flatten(seg_{M-1})]`` of size
     ``L*C``; the CLS output is the global feature. Attention is over tokens *within* a sample (unlike the release,
-    whose ``batch_first=False`` attention runs across the batch, see the module docstring).
+    whose ``batch_first=False`` attention runs along the batch and so makes the CLS output a learned constant,
+    ``out_proj(v_proj(cls))``; see the module docstring).
 
     ``token_dim`` (a model change, not the paper's form; None = the paper's): each segment token is first
     projected ``L*C -> token_dim`` (one shared ``Dense``), the attention runs on ``token_dim``-wide tokens and only
