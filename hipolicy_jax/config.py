@@ -41,7 +41,13 @@ class ChunkConfig:
     strides: tuple[int, ...] = (1, 2, 3)
     obs_horizon: int = 3  # L_h
     chunk_len: int = 8  # L_c
-    action_offset: int = 1  # δ ∈ {0, 1}; the release predicts from the step after the current frame
+    # δ: the chunk's first action is for frame t+δ. The release predicts from the step after the current frame (1).
+    # Diffusion Policy predicts from the first observed frame, δ = -(L_h-1) (its horizon covers the observed steps
+    # too); the actions before the current frame are predicted and never executed. δ < 0 needs a single stride.
+    action_offset: int = 1
+    # Actions executed per decision, from the first action for a frame >= t (Diffusion Policy's n_action_steps).
+    # None: all of them, L_c - max(0, -δ), what HiPolicy and our defaults do.
+    exec_len: int | None = None
 
     def __post_init__(self):
         s = tuple(self.strides)
@@ -51,7 +57,16 @@ class ChunkConfig:
         _require(all(a < b for a, b in zip(s, s[1:])), "chunk.strides", f"must be strictly ascending, got {s}")
         _require(self.obs_horizon >= 1, "chunk.obs_horizon", f"(L_h) must be >= 1, got {self.obs_horizon}")
         _require(self.chunk_len >= 1, "chunk.chunk_len", f"(L_c) must be >= 1, got {self.chunk_len}")
-        _require(self.action_offset in (0, 1), "chunk.action_offset", f"must be 0 or 1, got {self.action_offset}")
+        _require(-(self.obs_horizon - 1) <= self.action_offset <= 1, "chunk.action_offset",
+                 f"must be in [-(obs_horizon-1), 1] = [{-(self.obs_horizon - 1)}, 1], got {self.action_offset}")
+        _require(self.action_offset >= 0 or len(s) == 1, "chunk.action_offset",
+                 f"a negative offset (actions for observed frames, Diffusion Policy's layout) needs a single stride, "
+                 f"got {self.action_offset} with strides {s}")
+        _require(self.action_offset > -self.chunk_len, "chunk.action_offset",
+                 f"leaves no action for the current frame: chunk_len={self.chunk_len}, got {self.action_offset}")
+        _require(self.exec_len is None or 1 <= self.exec_len <= self.chunk_len - max(0, -self.action_offset),
+                 "chunk.exec_len", f"must be None or in [1, chunk_len - max(0, -action_offset)] = "
+                 f"[1, {self.chunk_len - max(0, -self.action_offset)}], got {self.exec_len}")
         object.__setattr__(self, "strides", s)
 
     @property
@@ -73,6 +88,16 @@ class ChunkConfig:
     def obs_span(self) -> int:
         """Base-rate frames of history needed to serve every stride: (L_h-1)·max(s) + 1."""
         return (self.obs_horizon - 1) * max(self.strides) + 1
+
+    @property
+    def exec_start(self) -> int:
+        """Index in a segment of the first executed action: the first for a frame >= t, max(0, -δ)."""
+        return max(0, -self.action_offset)
+
+    @property
+    def exec_steps(self) -> int:
+        """Actions executed per decision (at most; AAC may stop earlier): ``exec_len`` or L_c - ``exec_start``."""
+        return self.exec_len if self.exec_len is not None else self.chunk_len - self.exec_start
 
     @property
     def action_span(self) -> int:
@@ -106,6 +131,15 @@ class EncoderConfig:
     image_channels: tuple[int, ...] = (64, 128, 256, 512)  # ResNet stage widths; "cpu" configs use smaller
     num_keypoints: int = 32
     image_out: int = 64
+    # The image encoder's head. 'spatial_softmax': robomimic's VisualCore, as Diffusion Policy's hybrid configs
+    # (the trunk above, spatial soft-argmax, Linear(image_out)). 'resnet_avgpool': what DP's MultiImageObsEncoder
+    # builds and the HiPolicy release uses: torchvision ResNet-18 with every BatchNorm replaced by GroupNorm(C // 16),
+    # fc removed (the image_channels[-1] = 512-D global average pool; num_keypoints and image_out unused), ImageNet
+    # mean/std applied to the [-1, 1] image as DP does, image feature before the state (DP: rgb keys, then low-dim
+    # keys). ImageNet normalisation belongs to the kind, not a flag: the release and every DP config that builds
+    # this encoder set imagenet_norm=True. Release values with it: image_channels (64, 128, 256, 512), crop_size =
+    # image_size (no crop), state_encoder 'identity'. Default 'spatial_softmax': our trained runs use it.
+    image_encoder: Literal["spatial_softmax", "resnet_avgpool"] = "spatial_softmax"
     # point-cloud encoder (DP3)
     num_points: int = 512
     point_sampling: Literal["random", "fps"] = "random"  # down-sampling of the camera's points; DP3: fps
@@ -127,6 +161,12 @@ class EncoderConfig:
         _require(self.state_dims is None or self.state_dims >= 1, "encoder.state_dims",
                  f"must be None (all) or >= 1, got {self.state_dims}")
         _require(len(self.image_channels) >= 1, "encoder.image_channels", "needs at least one stage")
+        _require(self.image_encoder in ("spatial_softmax", "resnet_avgpool"), "encoder.image_encoder",
+                 f"must be 'spatial_softmax' or 'resnet_avgpool', got {self.image_encoder!r}")
+        _require(self.image_encoder != "resnet_avgpool"
+                 or all(c >= 16 and c % (c // 16) == 0 for c in self.image_channels), "encoder.image_channels",
+                 f"image_encoder='resnet_avgpool' normalises with GroupNorm(C // 16) as Diffusion Policy: every "
+                 f"width C must be >= 16 and divisible by C // 16, got {self.image_channels}")
         _require(self.num_keypoints >= 1, "encoder.num_keypoints", f"must be >= 1, got {self.num_keypoints}")
 
     @property
@@ -153,6 +193,13 @@ class ModelConfig:
     # None: the paper's fusion (attention over full L_c·C-wide segment tokens). An int: the lighter variant that
     # projects each segment token to this width before the attention (a model change with fewer parameters).
     fusion_token_dim: int | None = None
+    # What the fusion computes. 'attention' (default): CLS-token attention over each sample's segment tokens, as the
+    # paper describes. 'release': the HiPolicy release's function, which is a learned constant: its
+    # nn.MultiheadAttention (batch_first=False) fed (B, M+1, D) attends along the batch, so the CLS output is
+    # out_proj(v_proj(cls)) for every input. Kept to run the release's weights exactly (experiments.import_checkpoint)
+    # and to measure, in the ablation, what real attention adds over that constant; not the default, because a
+    # constant cannot fuse anything.
+    fusion_kind: Literal["attention", "release"] = "attention"
     # Operand dtype of the U-Net's convolutions and fusion attention (float32 accumulation, parameters, norms):
     # 'bfloat16' runs them as bf16 matmuls (BF16 dot-product / AMX instructions where the CPU has them).
     compute_dtype: Literal["float32", "bfloat16"] = "float32"
@@ -172,6 +219,11 @@ class ModelConfig:
         _require(self.fusion_heads >= 1, "model.fusion_heads", f"must be >= 1, got {self.fusion_heads}")
         _require(self.fusion_token_dim is None or self.fusion_token_dim >= 1, "model.fusion_token_dim",
                  f"must be None or >= 1, got {self.fusion_token_dim}")
+        _require(self.fusion_kind in ("attention", "release"), "model.fusion_kind",
+                 f"must be 'attention' or 'release', got {self.fusion_kind!r}")
+        _require(self.fusion_kind == "attention" or self.fusion_token_dim is None, "model.fusion_token_dim",
+                 f"the release's fusion (model.fusion_kind='release') has full-width tokens; pass None, got "
+                 f"{self.fusion_token_dim}")
 
     @property
     def unet_dims(self) -> tuple[int, ...]:
@@ -349,18 +401,50 @@ class EvalConfig:
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
-    """Optimiser, schedule, EMA and checkpointing (Diffusion Policy defaults)."""
+    """Optimiser, schedule, EMA, training windows and checkpointing (Diffusion Policy defaults).
+
+    The HiPolicy release trains with two Diffusion Policy (DP) workspaces that differ from DP and from each other;
+    each such setting is a field below, with DP's value, the release's and why ours is what it is. The release's
+    optimiser, schedule, EMA switch and windows: ``betas=(0.9, 0.999), max_action_pad=7`` with ``warmup_steps=500``
+    (v2: EMA on, no clipping) or ``warmup_steps=8000, grad_clip=1.0, ema=False`` (v1).
+    """
 
     batch_size: int = 128
     num_steps: int = 3000
     lr: float = 1e-4
+    # AdamW (β1, β2). DP: (0.95, 0.999); the release (v1 and v2): (0.9, 0.999). Ours: DP's, because our M = 1
+    # baseline is DP and HiPolicy runs train with the same optimiser, so a comparison isolates the multi-frequency
+    # change; no run of ours has shown the release's β1 to train better.
     betas: tuple[float, float] = (0.95, 0.999)
     weight_decay: float = 1e-6
+    # Linear warm-up from 0 to ``lr`` over these updates, then cosine decay to 0 at ``num_steps`` (diffusers'
+    # ``get_scheduler('cosine')``, as DP builds it; a run no longer than its warm-up warms up throughout and never
+    # reaches ``lr``, as there). DP: 500; the release: 8,000 (v1 workspace) / 500 (v2). Ours: 500, because our
+    # budgets are 3,000-20,000 updates, and 8,000 would spend a short run's whole budget, and a long one's first
+    # 40 %, below the learning rate it was given.
     warmup_steps: int = 500
+    # Clip the gradients' global L2 norm to this before AdamW (torch's ``clip_grad_norm_``; None: no clipping). DP:
+    # none; the release: 1.0 in its v1 workspace only. Ours: none, as DP and the release's v2, because our runs
+    # trained without it and a step whose loss or gradients go non-finite is skipped and stops the run with a
+    # message that suggests this setting; a run whose loss spikes can set 1.0 (the logged grad_norm is unclipped).
     grad_clip: float | None = None
+    # Keep an EMA of the parameters and evaluate / export it (off: the raw parameters). DP: on; the release: off
+    # (v1), on (v2). Ours: on, as DP and v2, because DP evaluates and checkpoints its EMA policy and users of these
+    # systems ask for EMA on by default.
     ema: bool = True
     ema_power: float = 0.75
     ema_max_decay: float = 0.9999
+    # How many frames a training window's actions may reach past its episode's last frame (repeats of the last
+    # frame; None: no limit, every current frame whose first action a[t+δ] lies in the episode trains). The window's
+    # last action frame is t + chunk.action_span - 1, so a limit p keeps current frames t <= end - action_span + p
+    # (end: one past the episode's last frame). DP's ``SequenceSampler`` pad_after = n_action_steps - 1; the
+    # release: 7 on its 29-frame sequence (7 observation frames + 22 more), i.e. t <= end - 16 with the default
+    # chunk. Ours: None, because the last frames of a demo are the only windows that show the policy how an
+    # episode ends and holds, and short demos can spare none of them (p = 7 drops 14 of each episode's windows with
+    # the default chunk: 12-26 % of a 55-113-frame demo, our Meta-World buffers' lengths). An episode too short for
+    # any window under a limit trains none (as DP's sampler), with a warning naming it. Observation padding needs no
+    # limit: DP's pad_before = n_obs_steps - 1 pads the whole history of the first frame, as every window here does.
+    max_action_pad: int | None = None
     seed: int = 0
     log_every: int = 50
     ckpt_every: int = 1000
@@ -373,6 +457,12 @@ class TrainConfig:
         _require(len(self.betas) == 2 and all(0 <= b < 1 for b in self.betas), "train.betas",
                  f"must be two values in [0, 1), got {self.betas}")
         _require(self.warmup_steps >= 0, "train.warmup_steps", f"must be >= 0, got {self.warmup_steps}")
+        _require(self.grad_clip is None or self.grad_clip > 0, "train.grad_clip",
+                 f"must be None (no clipping) or > 0, got {self.grad_clip}")
+        _require(self.ema_power > 0, "train.ema_power", f"must be > 0, got {self.ema_power}")
+        _require(0 <= self.ema_max_decay < 1, "train.ema_max_decay", f"must be in [0, 1), got {self.ema_max_decay}")
+        _require(self.max_action_pad is None or self.max_action_pad >= 0, "train.max_action_pad",
+                 f"must be None (no limit) or >= 0, got {self.max_action_pad}")
         _require(self.ckpt_every >= 1, "train.ckpt_every", f"must be >= 1, got {self.ckpt_every}")
         _require(self.ckpt_keep >= 1, "train.ckpt_keep", f"must be >= 1, got {self.ckpt_keep}")
         _require(self.log_every >= 1, "train.log_every", f"must be >= 1, got {self.log_every}")

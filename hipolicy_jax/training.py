@@ -30,9 +30,13 @@ class TrainState:
 
 
 def lr_schedule(cfg: TrainConfig) -> optax.Schedule:
-    """Linear warm-up to ``lr`` then cosine decay to 0 at ``num_steps``."""
-    warmup = min(cfg.warmup_steps, cfg.num_steps - 1)
-    return optax.warmup_cosine_decay_schedule(0.0, cfg.lr, warmup, cfg.num_steps, end_value=0.0)
+    """Learning rate of the update after ``count`` updates: linear warm-up from 0 to ``lr`` over ``warmup_steps``,
+    then cosine decay to 0 at ``num_steps``; diffusers' ``get_cosine_schedule_with_warmup`` (Diffusion Policy's
+    ``get_scheduler('cosine')``), whose update k uses its factor at k - 1 as here. A run no longer than its warm-up
+    only warms up (``lr * count / warmup_steps``), as there."""
+    if cfg.warmup_steps >= cfg.num_steps:
+        return optax.linear_schedule(0.0, cfg.lr, cfg.warmup_steps)
+    return optax.warmup_cosine_decay_schedule(0.0, cfg.lr, cfg.warmup_steps, cfg.num_steps, end_value=0.0)
 
 
 def make_optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
@@ -43,7 +47,10 @@ def make_optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
 
 
 def ema_decay(step: jax.Array, cfg: TrainConfig) -> jax.Array:
-    """Diffusion Policy's EMA warm-up: 0 for the first update, then 1 − (1 + s)^−power, s = step − 1."""
+    """Diffusion Policy's EMA warm-up: 0 for the first update, then 1 − (1 + s)^−power, s = step − 1, clipped to
+    ``ema_max_decay``: DP's ``EMAModel.get_decay(step)``. The train step applies ``ema_decay(k - 1)`` at update k,
+    as DP's workspace does (``EMAModel.step`` reads its count before counting the update): decays 0, 0, 0.405,
+    0.561, ... for updates 1, 2, 3, 4."""
     s = jnp.asarray(step, jnp.float32) - 1.0
     decay = 1.0 - (1.0 + s) ** (-cfg.ema_power)
     return jnp.where(s <= 0, 0.0, jnp.clip(decay, 0.0, cfg.ema_max_decay))
@@ -86,7 +93,7 @@ def make_train_step(net, cfg: PolicyConfig, train_cfg: TrainConfig,
             params = optax.apply_updates(state.params, updates)
             new_step = state.step + 1
             if train_cfg.ema:
-                ema = optax.incremental_update(params, state.ema_params, 1.0 - ema_decay(new_step, train_cfg))
+                ema = optax.incremental_update(params, state.ema_params, 1.0 - ema_decay(state.step, train_cfg))
             else:
                 ema = params
             return TrainState(step=new_step, params=params, ema_params=ema, opt_state=opt_state)

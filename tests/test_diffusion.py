@@ -14,7 +14,7 @@ def test_squaredcos_betas_match_formula():
     betas = diffusion.make_betas(cfg)
     f = lambda t: np.cos((t + 0.008) / 1.008 * np.pi / 2) ** 2  # noqa: E731
     assert betas.shape == (100,)
-    np.testing.assert_allclose(betas[0], 1 - f(0.01) / f(0.0), rtol=1e-12)
+    assert betas[0] == np.float32(1 - f(0.01) / f(0.0))  # rounded to float32, as diffusers stores it
     assert betas[-1] == pytest.approx(0.999)  # capped
     assert np.all(np.diff(betas) > 0)
     ab = diffusion.alphas_cumprod(cfg)
@@ -35,7 +35,9 @@ def test_table_timesteps_and_final_step_is_clean(sampler, steps):
         np.testing.assert_array_equal(t, np.arange(90, -1, -10))
     # At the last step ᾱ_prev = 1: x_prev = x0 exactly, no noise.
     assert float(tab.sigma[-1]) == 0.0
-    np.testing.assert_allclose(float(tab.c_x0[-1]), 1.0, rtol=1e-5)
+    # 1 in exact arithmetic; diffusers' float32 ᾱ_0 makes DDPM's last step β_0/(1-ᾱ_0) = 1 + 1.4e-5, which a ported
+    # Diffusion Policy checkpoint was sampled with (tests/test_porting.py), so the table keeps it
+    np.testing.assert_allclose(float(tab.c_x0[-1]), 1.0, rtol=1e-5 if sampler != "ddpm" else 2e-5)
     assert abs(float(tab.c_xt[-1])) < 1e-6 and abs(float(tab.c_eps[-1])) < 1e-6 and abs(float(tab.c_eps_c[-1])) < 1e-6
 
 
@@ -138,7 +140,9 @@ def test_oracle_denoiser_recovers_point_mass(prediction, sampler, steps):
     x = jax.random.normal(jax.random.key(0), (64, 3))
     out = _run_chain(cfg, diffusion.reverse_table(cfg, sampler, steps), x, lambda x, row: jnp.broadcast_to(c, x.shape),
                      jax.random.key(1))
-    np.testing.assert_allclose(np.asarray(out), np.broadcast_to(np.asarray(c), (64, 3)), atol=1e-5)
+    # DDPM's last step scales x0 by diffusers' float32 β_0/(1-ᾱ_0) = 1 + 1.4e-5 (see above)
+    np.testing.assert_allclose(np.asarray(out), np.broadcast_to(np.asarray(c), (64, 3)),
+                               atol=1e-5 if sampler != "ddpm" else 2e-5)
 
 
 @pytest.mark.parametrize("sampler", ["ddpm", "ddim"])

@@ -139,7 +139,7 @@ def test_delayed_chunk_executes_the_committed_actions_then_the_new_chunk_from_d(
     assert int(out.num_actions) == 3 and out.actions[:3, 0].tolist() == [3.0, 11.0, 12.0]
     pending, valid = ex1.prefix(state)
     assert pending[:, 0].tolist() == [13.0] and bool(valid)
-    with pytest.raises(ValueError, match=r"inference.delay: .* 1 <= d <= chunk_len/2 = 2, got 3"):
+    with pytest.raises(ValueError, match=r"inference.delay: .* 1 <= d <= exec_steps/2 = 2, got 3"):
         execution.make_execution(InferenceConfig(delay=3)).init(chunk, 1)
     with pytest.raises(ValueError, match="inference.delay: asynchronous execution runs whole chunks"):
         InferenceConfig(delay=1, execution="te")

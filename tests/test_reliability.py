@@ -130,10 +130,11 @@ def _flip_bytes_of(item_dir, array) -> int:
 
 @pytest.fixture(scope="module")
 def two_checkpoints(dataset, tmp_path_factory):
-    """A run stopped after step 2 of 3 with checkpoints at steps 1 and 2, and the same run trained to step 3."""
+    """A run stopped after step 3 of 4 with checkpoints at steps 2 and 3, and the same run trained to step 4. (At
+    step 2 the EMA still equals the parameters: Diffusion Policy's decay is 0 for the first two updates.)"""
     root = tmp_path_factory.mktemp("checked")
-    train = TrainConfig(batch_size=16, num_steps=3, warmup_steps=1, ckpt_every=1, ckpt_keep=3)
-    stopped = fit(tiny_cfg(), train, dataset, str(root / "stopped"), progress=False, tensorboard=False, stop_at=2)
+    train = TrainConfig(batch_size=16, num_steps=4, warmup_steps=1, ckpt_every=1, ckpt_keep=2)
+    stopped = fit(tiny_cfg(), train, dataset, str(root / "stopped"), progress=False, tensorboard=False, stop_at=3)
     full = fit(tiny_cfg(), train, dataset, str(root / "full"), progress=False, tensorboard=False)
     return root / "stopped", stopped, full, train
 
@@ -144,11 +145,11 @@ def _largest_leaf(tree):
 
 def test_checkpoints_store_the_checksum_of_every_tree_as_written(two_checkpoints, dataset):
     run, stopped, _, _ = two_checkpoints
-    loaded = checkpoint.load_policy(str(run / "checkpoints"), 2)
+    loaded = checkpoint.load_policy(str(run / "checkpoints"), 3)
     stored = loaded.meta["checksums"]
     assert tuple(stored) == checkpoint.CHECKED_TREES == ("step", "params", "ema_params", "opt_state", "normalizer")
-    assert stored == checkpoint.checksums(stopped.state, dataset.normalizer.to_dict())  # the state at step 2
-    assert stored["params"] != stored["ema_params"] and int(stopped.state.step) == loaded.step == 2
+    assert stored == checkpoint.checksums(stopped.state, dataset.normalizer.to_dict())  # the state at step 3
+    assert stored["params"] != stored["ema_params"] and int(stopped.state.step) == loaded.step == 3
     np.testing.assert_array_equal(_largest_leaf(loaded.params), _largest_leaf(stopped.state.ema_params))
 
 
@@ -160,60 +161,60 @@ def test_a_damaged_tree_is_refused_in_one_line(two_checkpoints, dataset, tree, t
     shutil.copytree(run, tmp_path / "run")
     ckpts = tmp_path / "run" / "checkpoints"
     if tree == "normalizer":
-        damaged = _flip_bytes_of(ckpts / "2" / "normalizer", dataset.normalizer.to_dict()["action"]["scale"])
+        damaged = _flip_bytes_of(ckpts / "3" / "normalizer", dataset.normalizer.to_dict()["action"]["scale"])
     else:
-        damaged = _flip_bytes_of(ckpts / "2" / "state", _largest_leaf(getattr(stopped.state, tree)))
+        damaged = _flip_bytes_of(ckpts / "3" / "state", _largest_leaf(getattr(stopped.state, tree)))
     assert damaged >= 1
     if tree in ("params", "opt_state"):  # not part of a trained policy: its load does not read them
         loaded = checkpoint.load_policy(str(ckpts))
         np.testing.assert_array_equal(_largest_leaf(loaded.params), _largest_leaf(stopped.state.ema_params))
-        with pytest.raises(checkpoint.CheckpointDamaged, match=rf"step 2 at .* is damaged: its {tree} does not"):
+        with pytest.raises(checkpoint.CheckpointDamaged, match=rf"step 3 at .* is damaged: its {tree} does not"):
             with checkpoint.Checkpointer(str(ckpts)) as ckpt:  # what resume reads
-                ckpt.restore(2, jax.eval_shape(lambda: stopped.state))
+                ckpt.restore(3, jax.eval_shape(lambda: stopped.state))
         return
     with pytest.raises(ValueError) as info:
         checkpoint.load_policy(str(ckpts))
     msg = str(info.value)
     assert "\n" not in msg
     if tree == "normalizer":  # its small arrays sit beside OCDBT's own checked records: unreadable or damaged
-        assert f"step 2 at {ckpts / '2'} is damaged: its normalizer does not match" in msg or \
-            f"{ckpts / '2'} is unreadable" in msg, msg
+        assert f"step 3 at {ckpts / '3'} is damaged: its normalizer does not match" in msg or \
+            f"{ckpts / '3'} is unreadable" in msg, msg
     else:  # a flipped byte inside a zstd frame decodes to other numbers: only the checksum sees it
         assert isinstance(info.value, checkpoint.CheckpointDamaged) and info.value.trees == (tree,)
-        assert msg == (f"checkpoint: step 2 at {ckpts / '2'} is damaged: its {tree} does not match the SHA-256 "
-                       f"stored when it was written; pass another --step (steps: [1, 2]) or re-train")
-    checkpoint.load_policy(str(ckpts), 1)  # the older step is intact and loads
+        assert msg == (f"checkpoint: step 3 at {ckpts / '3'} is damaged: its {tree} does not match the SHA-256 "
+                       f"stored when it was written; pass another --step (steps: [2, 3]) or re-train")
+    checkpoint.load_policy(str(ckpts), 2)  # the older step is intact and loads
 
 
 def test_resume_falls_back_to_the_newest_checkpoint_that_verifies(two_checkpoints, dataset, tmp_path, capsys):
     run, stopped, full, train = two_checkpoints
     shutil.copytree(run, tmp_path / "run")
     ckpts = tmp_path / "run" / "checkpoints"
-    assert _flip_bytes_of(ckpts / "2" / "state", _largest_leaf(stopped.state.params)) >= 1
-    (ckpts / "corrupt_2").mkdir()  # set aside by an earlier resume: kept, never overwritten
+    assert _flip_bytes_of(ckpts / "3" / "state", _largest_leaf(stopped.state.params)) >= 1
+    (ckpts / "corrupt_3").mkdir()  # set aside by an earlier resume: kept, never overwritten
     capsys.readouterr()
     res = fit(tiny_cfg(), train, dataset, str(tmp_path / "run"), progress=False, tensorboard=False)
     printed = capsys.readouterr().out.splitlines()
-    said = [x for x in printed if "step 2 is damaged" in x]
-    assert said == [f"[checkpoint] step 2 is damaged (its params does not match the SHA-256 stored when it was "
-                    f"written); kept aside as {ckpts / 'corrupt_2.1'}, trying step 1"]
-    assert "[checkpoint] resuming from step 1" in printed
-    assert (ckpts / "corrupt_2").is_dir() and (ckpts / "corrupt_2.1" / "state").is_dir()
-    assert res.start_step == 1
-    np.testing.assert_allclose(res.losses, full.losses[1:], rtol=1e-6)  # the same run as if nothing was damaged
+    said = [x for x in printed if "step 3 is damaged" in x]
+    assert said == [f"[checkpoint] step 3 is damaged (its params does not match the SHA-256 stored when it was "
+                    f"written); kept aside as {ckpts / 'corrupt_3.1'}, trying step 2"]
+    assert "[checkpoint] resuming from step 2" in printed
+    assert (ckpts / "corrupt_3").is_dir() and (ckpts / "corrupt_3.1" / "state").is_dir()
+    assert res.start_step == 2
+    np.testing.assert_allclose(res.losses, full.losses[2:], rtol=1e-6)  # the same run as if nothing was damaged
 
 
 def test_a_checkpoint_without_checksums_loads_with_a_one_line_note(two_checkpoints, tmp_path, capsys):
     run, stopped, _, _ = two_checkpoints
     shutil.copytree(run / "checkpoints", tmp_path / "checkpoints")
-    meta_file = tmp_path / "checkpoints" / "2" / "meta" / "metadata"
+    meta_file = tmp_path / "checkpoints" / "3" / "meta" / "metadata"
     meta = json.loads(meta_file.read_text())
     del meta["checksums"]  # as written before checksums were stored
     meta_file.write_text(json.dumps(meta))
     capsys.readouterr()
     loaded = checkpoint.load_policy(str(tmp_path / "checkpoints"))
     err = capsys.readouterr().err
-    assert err == (f"[checkpoint] step 2 at {tmp_path / 'checkpoints' / '2'} carries no checksum (written before "
+    assert err == (f"[checkpoint] step 3 at {tmp_path / 'checkpoints' / '3'} carries no checksum (written before "
                    f"checksums were stored): loaded unchecked\n")
     np.testing.assert_array_equal(_largest_leaf(loaded.params), _largest_leaf(stopped.state.ema_params))
 

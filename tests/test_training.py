@@ -220,6 +220,26 @@ def test_bfloat16_training_learns_bimodal_distribution(dataset, tmp_path):
                                                                        num_steps=20)), 0.9)
 
 
+def test_train_step_applies_dps_ema_decays(dataset):
+    """The real train step: the EMA equals the parameters after updates 1 and 2 (DP's workspace applies
+    ``get_decay(k - 1)`` at update k: 0, 0) and after update 3 is 0.405 old EMA + 0.595 new parameters."""
+    cfg, train_cfg = tiny_cfg(), TrainConfig(batch_size=8, num_steps=10, warmup_steps=0)
+    batch = dataset.get_batch(np.arange(8))
+    net, tx = PolicyNet(cfg, 2), make_optimizer(train_cfg)
+    state = init_train_state(init_policy_params(cfg, 2, batch["obs"], jax.random.key(0)), tx)
+    step = make_train_step(net, cfg, train_cfg, tx)
+    leaf = lambda tree: np.asarray(jax.tree.leaves(tree)[0]).copy()  # noqa: E731
+    seen = []
+    for i in range(3):
+        state, _ = step(state, dataset.get_batch(np.arange(8) + i), jax.random.key(i))
+        seen.append((leaf(state.params), leaf(state.ema_params)))
+    np.testing.assert_array_equal(seen[0][1], seen[0][0])
+    np.testing.assert_array_equal(seen[1][1], seen[1][0])
+    assert np.abs(seen[2][1] - seen[2][0]).max() > 0
+    d = 1 - 2 ** -0.75  # DP's get_decay(2) = 0.4054
+    np.testing.assert_allclose(seen[2][1], d * seen[1][1] + (1 - d) * seen[2][0], rtol=1e-5, atol=1e-7)
+
+
 def test_train_step_compiles_once(dataset):
     cfg, train_cfg = tiny_cfg(), TrainConfig(batch_size=16, num_steps=10, warmup_steps=2)
     batch = dataset.get_batch(np.arange(16))

@@ -25,8 +25,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from hipolicy_jax import envs, jsonio
-from hipolicy_jax.checkpoint import CheckpointDamaged, config_to_dict
-from hipolicy_jax.config import InferenceConfig
+from hipolicy_jax.checkpoint import CheckpointDamaged, config_from_dict, config_to_dict
+from hipolicy_jax.config import InferenceConfig, PolicyConfig
 from hipolicy_jax.data.replay_buffer import collection_lock
 from hipolicy_jax.evaluation import calibration
 from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
@@ -373,7 +373,13 @@ def shard(jobs: list[Job], k: int, n: int, run_of: Callable[[Job], str]) -> list
 
 def training_key(policy: dict, batch_size: int) -> str:
     """What a training step's cost depends on: the policy config (network, encoder, objective) and the batch size;
-    not the task, the number of demos nor the number of steps (a regime's ``_d25`` / ``_t8000`` runs share it)."""
+    not the task, the number of demos nor the number of steps (a regime's ``_d25`` / ``_t8000`` runs share it).
+    The policy dict is read back through ``PolicyConfig`` first, so a record written before a config field existed
+    keys as that field's default (the network it trained)."""
+    try:
+        policy = config_to_dict(config_from_dict(PolicyConfig, policy))
+    except (TypeError, ValueError, AttributeError):
+        pass  # not a policy config this version reads: keyed as written
     return json.dumps({"policy": policy, "batch_size": batch_size}, sort_keys=True)
 
 

@@ -51,10 +51,13 @@ class SequenceDataset:
       episode_mask: ``(E,)`` bool, the episodes this dataset uses (default all).
       normalizer: use this instead of fitting one (e.g. the training set's, for validation); it must cover
         ``action`` and the non-image observation keys.
+      max_action_pad: ``TrainConfig.max_action_pad`` (``windowing.sample_indices``): at most this many of a
+        window's frames past its episode's last frame; None: no limit.
     """
 
     def __init__(self, buffer: ReplayBuffer, chunk: ChunkConfig, obs_keys: Sequence[str],
-                 episode_mask: np.ndarray | None = None, normalizer: Normalizer | None = None):
+                 episode_mask: np.ndarray | None = None, normalizer: Normalizer | None = None,
+                 max_action_pad: int | None = None):
         self.chunk = chunk
         self.obs_keys = tuple(obs_keys)
         for key in ("action",) + self.obs_keys:
@@ -73,8 +76,13 @@ class SequenceDataset:
         self.episode_mask = episode_mask
 
         # Sample indices of the selected episodes (global frame indices into the buffer's arrays).
-        current, obs_idx, act_idx = sample_indices(buffer.episode_ends, chunk)
+        current, obs_idx, act_idx = sample_indices(buffer.episode_ends, chunk, max_action_pad)
         keep = episode_mask[np.searchsorted(buffer.episode_ends, current, side="right")]
+        if not keep.any():
+            raise ValueError(f"train.max_action_pad={max_action_pad}: the selected episodes "
+                             f"{np.flatnonzero(episode_mask).tolist()} are all too short for a window (lengths "
+                             f"{buffer.episode_lengths()[episode_mask].tolist()}, chunk.action_span="
+                             f"{chunk.action_span}); raise it, or None for no limit")
         self.current, self.obs_idx, self.act_idx = current[keep], obs_idx[keep], act_idx[keep]
 
         # Normalise the low-dimensional arrays once; images stay uint8 and are converted per batch.
@@ -122,10 +130,14 @@ class SequenceDataset:
 
 
 def train_heldout_datasets(buffer: ReplayBuffer, chunk: ChunkConfig, obs_keys: Sequence[str], val_ratio: float,
-                           seed: int, normalizer: Normalizer | None = None) -> tuple[SequenceDataset, SequenceDataset]:
+                           seed: int, normalizer: Normalizer | None = None,
+                           max_action_pad: int | None = None) -> tuple[SequenceDataset, SequenceDataset]:
     """The one train / held-out split of a run: episodes split by ``split_episodes(val_ratio, seed)``; the held-out
-    dataset uses the training normaliser (or ``normalizer``, e.g. a checkpoint's, for both)."""
+    dataset uses the training normaliser (or ``normalizer``, e.g. a checkpoint's, for both) and the same windows
+    (``max_action_pad``, ``TrainConfig.max_action_pad``)."""
     train_mask, val_mask = split_episodes(buffer.num_episodes, val_ratio, seed)
-    train = SequenceDataset(buffer, chunk, obs_keys=obs_keys, episode_mask=train_mask, normalizer=normalizer)
-    val = SequenceDataset(buffer, chunk, obs_keys=obs_keys, episode_mask=val_mask, normalizer=train.normalizer)
+    train = SequenceDataset(buffer, chunk, obs_keys=obs_keys, episode_mask=train_mask, normalizer=normalizer,
+                            max_action_pad=max_action_pad)
+    val = SequenceDataset(buffer, chunk, obs_keys=obs_keys, episode_mask=val_mask, normalizer=train.normalizer,
+                          max_action_pad=max_action_pad)
     return train, val

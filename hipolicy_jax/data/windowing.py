@@ -11,11 +11,14 @@ first), and the action chunk concatenates the M segments along time: ``(M*L_c,)`
 Training (``sample_indices``) turns a replay buffer's episode ends into global frame indices once, at dataset build
 time, padding by repeating an episode's first / last frame (Diffusion Policy's sampler convention: observation
 history before the first frame repeats it, actions after the last frame repeat it) so that no window crosses an
-episode boundary and an episode of any length ≥ 1 trains. Evaluation (``gather_history``) reads the same windows out of the env's rolling
-base-rate history of ``chunk.obs_span`` frames, with jax arrays, under jit / vmap.
+episode boundary and an episode of any length ≥ 1 trains (``TrainConfig.max_action_pad`` can limit the padding
+after the last frame, as Diffusion Policy's ``pad_after`` does). Evaluation (``gather_history``) reads the same
+windows out of the env's rolling base-rate history of ``chunk.obs_span`` frames, with jax arrays, under jit / vmap.
 """
 
 from __future__ import annotations
+
+import warnings
 
 import jax.numpy as jnp
 import numpy as np
@@ -36,23 +39,51 @@ def action_offsets(chunk: ChunkConfig) -> np.ndarray:
     return chunk.action_offset + np.asarray(chunk.segment_strides, dtype=np.int64)[:, None] * steps[None, :]
 
 
-def sample_indices(episode_ends: np.ndarray, chunk: ChunkConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def sample_indices(episode_ends: np.ndarray, chunk: ChunkConfig,
+                   max_action_pad: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Global frame indices of every training sample.
 
     Args:
       episode_ends: ``(E,)`` cumulative episode ends (ReplayBuffer layout).
       chunk: windowing configuration.
+      max_action_pad: ``TrainConfig.max_action_pad``: at most this many of a window's frames past its episode's last
+        frame, i.e. current frames ``t <= end - chunk.action_span + max_action_pad`` (``end`` one past the last
+        frame); None: no limit. An episode shorter than ``chunk.action_span - max_action_pad`` frames has no such
+        window and gives none, with a warning naming it (Diffusion Policy's ``SequenceSampler`` yields exactly these
+        windows for ``pad_before = chunk.obs_span - 1``, ``pad_after = max_action_pad`` and sequence length
+        ``chunk.obs_span - 1 + chunk.action_span``; it yields none for such an episode, silently).
 
     Returns:
-      current: ``(S,)`` int64 current frames t, every frame with ``t + δ`` inside its episode, in time order; an
-        episode too short for any (one frame with δ = 1) gives its first frame, its actions all the last one's.
+      current: ``(S,)`` int64 current frames t, every frame of an episode whose first action for a frame >= t,
+        ``a[t + max(δ, 0)]``, lies in the episode (and within the limit), in time order; with no limit an episode
+        too short for any (one frame with δ = 1) gives its first frame, its actions all the last one's.
       obs_idx: ``(S, M, L_h)`` int64 observation frames per stride (segment order), clamped to the episode.
       act_idx: ``(S, M*L_c)`` int64 action frames, the M segments concatenated in segment order, clamped to the
         episode.
+
+    Raises:
+      ValueError: no episode is long enough for a window under ``max_action_pad``.
     """
     ends = check_episode_ends(episode_ends, None)
     starts = np.concatenate([[0], ends[:-1]])
-    num_valid = np.maximum(ends - starts - chunk.action_offset, 1)  # t ∈ [start, max(end-1-δ, start)]
+    lengths = ends - starts
+    num_valid = np.maximum(lengths - max(chunk.action_offset, 0), 1)  # t ∈ [start, max(end-1-max(δ, 0), start)]
+    if max_action_pad is not None:
+        # t's window ends at t + action_span - 1 <= end - 1 + max_action_pad
+        num_valid = np.clip(lengths - chunk.action_span + max_action_pad + 1, 0, num_valid)
+        short = np.flatnonzero(num_valid == 0)
+        if short.size:
+            need = chunk.action_span - max_action_pad
+            listed = ", ".join(f"{e} ({lengths[e]} frames)" for e in short[:10])
+            more = f" and {short.size - 10} more" if short.size > 10 else ""
+            which = (f"episode {listed} of the buffer's {ends.shape[0]} is" if short.size == 1 else
+                     f"episodes {listed}{more} of the buffer's {ends.shape[0]} are")
+            msg = (f"train.max_action_pad={max_action_pad}: a window needs an episode of at least {need} frames "
+                   f"(chunk.action_span={chunk.action_span} - max_action_pad); {which} shorter")
+            if short.size == ends.shape[0]:
+                raise ValueError(f"{msg}: no episode has a window (raise train.max_action_pad, or None for no limit)")
+            warnings.warn(f"{msg} and train no window" if short.size > 1 else f"{msg} and trains no window",
+                          stacklevel=2)
     episode = np.repeat(np.arange(ends.shape[0]), num_valid)
     first_sample = np.concatenate([[0], np.cumsum(num_valid)[:-1]])
     current = starts[episode] + np.arange(episode.shape[0], dtype=np.int64) - first_sample[episode]

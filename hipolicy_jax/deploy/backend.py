@@ -75,7 +75,7 @@ def make_metadata(*, task: str, cfg, action_dim: int, inference: InferenceConfig
             "thresholds": [float(t) for t in np.asarray(thresholds).tolist()], "thresholds_source": thresholds_source,
             "inputs": {"obs": {k: ["B", *spec["shape"]] for k, spec in obs.items()}, "key_data": ["B", 2],
                        "prefix": ["B", prefix_len(inference), action_dim], "prefix_valid": ["B"]},
-            "outputs": {"actions": ["B", cfg.chunk.chunk_len, action_dim], "stride": ["B"], "freq_index": ["B"],
+            "outputs": {"actions": ["B", cfg.chunk.exec_steps, action_dim], "stride": ["B"], "freq_index": ["B"],
                         "entropy": ["B"], "chunks": ["B", n, cfg.chunk.horizon, action_dim]},
             **(extra or {})}
 

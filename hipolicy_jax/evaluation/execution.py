@@ -42,7 +42,9 @@ from hipolicy_jax.sampling import segment_of
 
 class Decision(NamedTuple):
     """The sampler's result for ONE episode: chunks (N, M·L_c, A) unnormalised, entropy (), freq_index () int32,
-    stride () int32, actions (L_c, A) (sample 0 at the selected frequency)."""
+    stride () int32, actions (E, A): sample 0's executable actions at the selected frequency (E =
+    ``chunk.exec_steps`` from ``chunk.exec_start``; the whole segment, E = L_c, unless the chunk predicts actions
+    for observed frames or executes fewer, as Diffusion Policy's ``n_action_steps``)."""
 
     chunks: jax.Array
     entropy: jax.Array
@@ -83,9 +85,10 @@ def aac_chunk_size(h: jax.Array) -> jax.Array:
 
 
 def _selected_samples(d: Decision, chunk: ChunkConfig) -> jax.Array:
-    """The N samples' segment of the selected frequency: (N, L_c, A)."""
+    """The N samples' executable actions at the selected frequency: (N, E, A)."""
     n = d.chunks.shape[0]
-    return segment_of(chunk, d.chunks, jnp.broadcast_to(d.freq_index, (n,)))
+    seg = segment_of(chunk, d.chunks, jnp.broadcast_to(d.freq_index, (n,)))
+    return seg[:, chunk.exec_start:chunk.exec_start + chunk.exec_steps]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,16 +98,16 @@ class ChunkExecution:
     name: str = "chunk"
 
     def exec_len(self, chunk: ChunkConfig) -> int:
-        return chunk.chunk_len
+        return chunk.exec_steps
 
     def min_actions(self, chunk: ChunkConfig) -> int:
-        return chunk.chunk_len
+        return chunk.exec_steps
 
     def init(self, chunk: ChunkConfig, action_dim: int):
         return ()
 
     def decide(self, d: Decision, state, chunk: ChunkConfig):
-        return PolicyOutput(d.actions, d.stride, d.entropy, jnp.int32(chunk.chunk_len)), state
+        return PolicyOutput(d.actions, d.stride, d.entropy, jnp.int32(chunk.exec_steps)), state
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,7 +118,7 @@ class AdaptiveChunking:
     name: str = "aac"
 
     def exec_len(self, chunk: ChunkConfig) -> int:
-        return chunk.chunk_len
+        return chunk.exec_steps
 
     def min_actions(self, chunk: ChunkConfig) -> int:
         return 1
@@ -150,11 +153,11 @@ class TemporalEnsembling:
         return 1
 
     def init(self, chunk: ChunkConfig, action_dim: int) -> EnsembleState:
-        lc = chunk.chunk_len
+        lc = chunk.exec_steps
         return EnsembleState(jnp.zeros((lc, lc, action_dim), jnp.float32), jnp.zeros((), jnp.int32))
 
     def decide(self, d: Decision, state: EnsembleState, chunk: ChunkConfig):
-        lc = chunk.chunk_len
+        lc = chunk.exec_steps
         chunks = jnp.concatenate([d.actions[None].astype(jnp.float32), state.chunks[:-1]], axis=0)
         count = jnp.minimum(state.count + 1, lc)
         j = jnp.arange(lc)
@@ -182,16 +185,20 @@ class DelayedChunk:
     name: str = "chunk"
 
     def check(self, chunk: ChunkConfig) -> None:
-        if not 1 <= self.delay <= chunk.chunk_len // 2:
+        if self.handover == "inpaint" and chunk.exec_start:
+            raise ValueError(f"inference.handover: 'inpaint' fixes a segment's first d actions, which are for "
+                             f"observed frames when chunk.action_offset < 0 (got {chunk.action_offset}); use "
+                             f"'naive'")
+        if not 1 <= self.delay <= chunk.exec_steps // 2:
             raise ValueError(f"inference.delay: a decision must be ready before the next one starts, so "
-                             f"1 <= d <= chunk_len/2 = {chunk.chunk_len // 2}, got {self.delay}")
+                             f"1 <= d <= exec_steps/2 = {chunk.exec_steps // 2}, got {self.delay}")
 
     def exec_len(self, chunk: ChunkConfig) -> int:
-        return chunk.chunk_len
+        return chunk.exec_steps
 
     def min_actions(self, chunk: ChunkConfig) -> int:
         self.check(chunk)
-        return chunk.chunk_len - self.delay
+        return chunk.exec_steps - self.delay
 
     def init(self, chunk: ChunkConfig, action_dim: int) -> DelayState:
         self.check(chunk)
@@ -201,7 +208,7 @@ class DelayedChunk:
         return (state.pending, state.valid) if self.handover == "inpaint" else None
 
     def decide(self, d: Decision, state: DelayState, chunk: ChunkConfig):
-        lc, k = chunk.chunk_len, self.delay
+        lc, k = chunk.exec_steps, self.delay
         new = d.actions.astype(jnp.float32)  # (L_c, A), action i for control step t0 + i
         first = jnp.where(state.valid, state.pending, new[:k])  # the d steps the decision takes to be ready
         actions = jnp.concatenate([first, new[k:]], axis=0)  # the last d are committed to the next decision

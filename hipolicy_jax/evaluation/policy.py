@@ -31,7 +31,8 @@ def make_decision_fn(net, cfg: PolicyConfig, action_dim: int,
                      inference: InferenceConfig = InferenceConfig()) -> Callable[..., Decision]:
     """``decide(obs_history, key, args: PolicyArgs, prefix=None) -> Decision`` for ONE episode: the sampler's
     chunks (``inference.samples_drawn``: N, or sample 0 alone where nothing reads the others), entropy and selected
-    frequency before any execution strategy. ``prefix``: None or ``(actions (d, A),
+    frequency before any execution strategy; ``Decision.actions`` are sample 0's executable actions at that
+    frequency (``chunk.exec_steps`` from ``chunk.exec_start``: the whole segment for HiPolicy). ``prefix``: None or ``(actions (d, A),
     valid ())`` committed actions to inpaint (``sampling.sample``). What the policy server and the exported policy
     compute; ``make_policy_fn`` adds the execution strategy."""
     keys = cfg.encoder.obs_keys
@@ -46,7 +47,9 @@ def make_decision_fn(net, cfg: PolicyConfig, action_dim: int,
         pre = {} if prefix is None else {"prefix": prefix[0][None], "prefix_valid": prefix[1][None]}
         res = sample(args.params, args.normalizer, obs, key, args.thresholds, net=net, cfg=cfg,
                      action_dim=action_dim, inference=inference, **pre)
-        return Decision(*(x[0] for x in res))
+        d = Decision(*(x[0] for x in res))
+        start = cfg.chunk.exec_start  # the executable actions: from the current frame, chunk.exec_steps of them
+        return d._replace(actions=d.actions[start:start + cfg.chunk.exec_steps])
 
     return decide
 

@@ -38,21 +38,26 @@ DEFAULT_DDIM_STEPS = 10
 
 
 def make_betas(cfg: DiffusionConfig) -> np.ndarray:
-    """β_1..β_K as float64 numpy, shape (K,)."""
+    """β_1..β_K, shape (K,), float32 values (held as float64) as diffusers' schedulers store them: the schedule is
+    computed in float64 and rounded to float32 (``torch.tensor(betas, dtype=torch.float32)``)."""
     k = cfg.num_train_steps
     if cfg.beta_schedule == "linear":
-        return np.linspace(cfg.beta_start, cfg.beta_end, k, dtype=np.float64)
+        betas = np.linspace(cfg.beta_start, cfg.beta_end, k, dtype=np.float64)
+    else:
+        def alpha_bar(t):
+            return np.cos((t + 0.008) / 1.008 * np.pi / 2) ** 2
 
-    def alpha_bar(t):
-        return np.cos((t + 0.008) / 1.008 * np.pi / 2) ** 2
-
-    i = np.arange(k, dtype=np.float64)
-    return np.minimum(1.0 - alpha_bar((i + 1) / k) / alpha_bar(i / k), 0.999)
+        i = np.arange(k, dtype=np.float64)
+        betas = np.minimum(1.0 - alpha_bar((i + 1) / k) / alpha_bar(i / k), 0.999)
+    return betas.astype(np.float32).astype(np.float64)
 
 
 def alphas_cumprod(cfg: DiffusionConfig) -> np.ndarray:
-    """ᾱ_t for t = 0..K-1, shape (K,)."""
-    return np.cumprod(1.0 - make_betas(cfg))
+    """ᾱ_t for t = 0..K-1, shape (K,): diffusers' float32 ``cumprod(1 - β)`` (held as float64). Its rounding is
+    part of the function a Diffusion Policy checkpoint was trained and sampled with: at t = 0, 1 - ᾱ_0 in float32
+    differs from β_0 by ~1e-5 relative, which moves the last DDPM step by as much (``tests/test_porting.py``)."""
+    alphas = (1.0 - make_betas(cfg).astype(np.float32)).astype(np.float32)
+    return np.cumprod(alphas, dtype=np.float32).astype(np.float64)
 
 
 class ReverseTable(NamedTuple):
@@ -110,10 +115,11 @@ def reverse_table(cfg: DiffusionConfig, sampler: str, num_steps: int) -> Reverse
     ab_t = ab[t]
     ab_prev = np.where(prev >= 0, ab[np.maximum(prev, 0)], 1.0)
     zero = np.zeros_like(ab_t)
-    if sampler == "ddpm":
-        beta_t = 1.0 - ab_t / ab_prev
+    if sampler == "ddpm":  # diffusers' DDPMScheduler (Diffusion Policy's 0.11.1): β_t and α_t = 1 - β_t as stored
+        beta_t = make_betas(cfg)[t]
+        alpha_t = (1.0 - beta_t.astype(np.float32)).astype(np.float32).astype(np.float64)
         c_x0 = np.sqrt(ab_prev) * beta_t / (1.0 - ab_t)
-        c_xt = np.sqrt(1.0 - beta_t) * (1.0 - ab_prev) / (1.0 - ab_t)
+        c_xt = np.sqrt(alpha_t) * (1.0 - ab_prev) / (1.0 - ab_t)
         c_eps = c_eps_c = zero
         var = np.clip((1.0 - ab_prev) / (1.0 - ab_t) * beta_t, 1e-20, None)
         sigma = np.where(t > 0, np.sqrt(var), 0.0)

@@ -1,4 +1,4 @@
-"""Observation encoders: proprioceptive state MLP, ResNet-18-style image encoder, DP3 point-cloud encoder.
+"""Observation encoders: proprioceptive state MLP, ResNet-18-style image encoders, DP3 point-cloud encoder.
 
 ``ObsEncoder`` turns a hierarchical observation window into HiPolicy's per-frequency condition. Its input arrays
 carry leading dims ``(B, M, L_h, ...)`` (batch, frequency in segment order, history frame); every frame of every
@@ -160,6 +160,62 @@ class ImageEncoder(nn.Module):
         return x.reshape(lead + (self.out_dim,))
 
 
+IMAGENET_MEAN = (0.485, 0.456, 0.406)  # torchvision's ImageNet statistics, as Diffusion Policy passes them
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+def dp_centre_crop(images: jax.Array, crop_size: int) -> jax.Array:
+    """torchvision's ``center_crop`` (what DP's ``CropRandomizer`` does in eval): ``(N, H, W, C) -> (N, c, c, C)``.
+
+    The offset is ``round((H - c) / 2)`` with Python's rounding (half to even), as torchvision computes it; it differs
+    from ``crop_images``' ``(H - c) // 2`` when ``H - c`` is 3, 7, 11, ...
+    """
+    _, h, w, _ = images.shape
+    top, left = int(round((h - crop_size) / 2.0)), int(round((w - crop_size) / 2.0))
+    return images[:, top:top + crop_size, left:left + crop_size]
+
+
+class ResNetAvgPoolEncoder(nn.Module):
+    """Diffusion Policy's ``MultiImageObsEncoder`` image path, as the HiPolicy release configures it.
+
+    Input ``(..., H, W, 3)`` float images in [-1, 1] (NHWC; DP's policy normaliser maps the dataset's [0, 1] images to
+    [-1, 1] before the encoder); output ``(..., channels[-1])`` (512 for ResNet-18). In DP's order: crop to
+    ``crop_size`` (none when it equals H = W; random offsets from the ``"crop"`` rng stream in training, torchvision's
+    centre crop at evaluation, as DP's ``CropRandomizer``), then ImageNet ``(x - mean) / std`` per channel — applied
+    to the [-1, 1] image, exactly as DP does although the statistics are those of [0, 1] images — then torchvision's
+    ResNet-18 with every BatchNorm replaced by ``GroupNorm(C // 16, C)`` (DP's ``replace_bn_with_gn``) and ``fc``
+    removed: 7x7/2 stem conv + GroupNorm + ReLU + 3x3/2 max-pool, two BasicBlocks per stage (stride 2 from the second
+    stage), global average pool. ``BasicBlock``'s ``gn_groups(C)`` equals ``C // 16`` for every width that
+    ``GroupNorm(C // 16, C)`` accepts (``C >= 16``, ``C % (C // 16) == 0``); other widths raise ``ValueError``.
+    ``porting.encoders`` maps torchvision's weights onto this module's parameters.
+    """
+
+    channels: tuple[int, ...] = (64, 128, 256, 512)
+    crop_size: int | None = None  # None: no crop (the release)
+
+    @nn.compact
+    def __call__(self, images: jax.Array, train: bool = False) -> jax.Array:
+        bad = [c for c in self.channels if c < 16 or c % (c // 16)]
+        if bad:
+            raise ValueError(f"channels: GroupNorm(C // 16, C) needs C >= 16 and C divisible by C // 16, got "
+                             f"{self.channels} (bad: {bad})")
+        lead = images.shape[:-3]
+        x = images.reshape((-1,) + images.shape[-3:])  # (N, H, W, 3)
+        if self.crop_size is not None:
+            x = (crop_images(x, self.crop_size, self.make_rng("crop")) if train
+                 else dp_centre_crop(x, self.crop_size))
+        x = (x - jnp.asarray(IMAGENET_MEAN, jnp.float32)) / jnp.asarray(IMAGENET_STD, jnp.float32)
+        c0 = self.channels[0]
+        x = nn.Conv(c0, (7, 7), strides=2, padding=3, use_bias=False, name="stem_conv")(x)
+        x = nn.relu(nn.GroupNorm(num_groups=c0 // 16, epsilon=1e-5, name="stem_norm")(x))
+        x = nn.max_pool(x, (3, 3), strides=(2, 2), padding=((1, 1), (1, 1)))
+        for s, ch in enumerate(self.channels):
+            for b in range(2):
+                x = BasicBlock(ch, 2 if (s > 0 and b == 0) else 1, name=f"stage{s}_block{b}")(x)
+        x = jnp.mean(x, axis=(1, 2))  # (N, channels[-1]): AdaptiveAvgPool2d(1) + flatten
+        return x.reshape(lead + (self.channels[-1],))
+
+
 class PointCloudEncoder(nn.Module):
     """DP3's PointNet-style encoder: ``(..., P, C) -> (..., out_dim)``.
 
@@ -193,7 +249,9 @@ class ObsEncoder(nn.Module):
     Each frame's feature is the state-MLP feature (``state_out``; the normalised state itself with
     ``state_encoder='identity'``, as Diffusion Policy's low-dim configs) concatenated with the image (``image_out``)
     or point-cloud (``point_out``) feature, all produced by one shared set of weights for every frequency and frame;
-    ``F`` is the sum. Extra keys are ignored.
+    ``F`` is the sum. With ``image_encoder='resnet_avgpool'`` the image feature (``image_channels[-1]``, 512 for
+    ResNet-18) comes first and the state after it, as Diffusion Policy's ``MultiImageObsEncoder`` orders them: with
+    the identity state, ``(B, M, L_h * (512 + D))``. Extra keys are ignored.
 
     ``frame_offsets`` (``(M, L_h)`` ints, ``data.windowing.obs_offsets``; ``PolicyNet`` passes it) says which time
     step each window position holds. The frequencies' windows overlap (strides 1/2/3 with ``L_h = 3`` cover 6
@@ -251,7 +309,11 @@ class ObsEncoder(nn.Module):
             feats = [state.astype(jnp.float32)]
         else:
             feats = [StateEncoder(cfg.state_hidden, cfg.state_out, name="state")(state)]
-        if cfg.obs_type == "image":
+        if cfg.obs_type == "image" and cfg.image_encoder == "resnet_avgpool":
+            crop = cfg.crop_size if cfg.crop_size < cfg.image_size else None
+            # Diffusion Policy's MultiImageObsEncoder concatenates the rgb keys' features first, then the low-dim keys
+            feats.insert(0, ResNetAvgPoolEncoder(cfg.image_channels, crop, name="image")(frames["image"], train=train))
+        elif cfg.obs_type == "image":
             feats.append(ImageEncoder(cfg.image_channels, cfg.num_keypoints, cfg.image_out, cfg.crop_size,
                                       name="image")(frames["image"], train=train))
         elif cfg.obs_type == "pointcloud":

@@ -55,6 +55,7 @@ class PolicyNet(nn.Module):
             fusion_heads=model.fusion_heads,
             compute_dtype=model.compute_dtype,
             fusion_token_dim=model.fusion_token_dim,
+            fusion_kind=model.fusion_kind,
         )
 
     def encode(self, obs, train: bool = False) -> jax.Array:

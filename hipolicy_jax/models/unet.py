@@ -23,7 +23,8 @@ frequency first); the condition ``cond`` is ``(B, M, Dc)`` in the same order. Co
   uniform and its output is ``out_proj(v_proj(cls))``. So the release's "global feature" is a learned constant,
   independent of the input and of the batch (the segment positions do attend across samples, but their outputs are
   discarded), and the paper's fusion ablation compared against a learned bias. Here attention runs over the ``M+1``
-  tokens of each sample, as the paper describes: no information crosses the batch axis.
+  tokens of each sample, as the paper describes: no information crosses the batch axis (``fusion_kind='attention'``,
+  the default). ``fusion_kind='release'`` computes the release's constant exactly, to run its weights.
   When ``L_c*C_in`` is not a multiple of ``fusion_heads`` the query/key/value width is rounded up to the next
   multiple (the output projection still returns ``L_c*C_in``); when it is a multiple (every release setting) the
   attention has the release's shape.
@@ -278,6 +279,30 @@ class Conv1dBlock(nn.Module):
         return mish(x)
 
 
+FusionKind = Literal["attention", "release"]
+
+
+class ReleaseFusionAttention(nn.Module):
+    """The release's fusion output, ``out_proj(v_proj(cls))``: ``cls`` ``(D,)`` -> ``(out_features,)``.
+
+    Same parameter tree as the ``value`` and ``out`` projections of ``nn.MultiHeadDotProductAttention`` (``value``
+    kernel ``(D, heads, head_dim)``, ``out`` kernel ``(heads, head_dim, out_features)``), so a checkpoint's weights
+    map onto either kind alike. The release's query and key projections do not affect its output (every score of the
+    CLS position is equal, whatever they are) nor receive a gradient, so they are not kept.
+    """
+
+    num_heads: int
+    qkv_features: int
+    out_features: int
+    dtype: jnp.dtype = jnp.float32
+
+    @nn.compact
+    def __call__(self, cls: jax.Array) -> jax.Array:
+        head_dim = self.qkv_features // self.num_heads
+        v = nn.DenseGeneral((self.num_heads, head_dim), dtype=self.dtype, name="value")(cls)
+        return nn.DenseGeneral(self.out_features, axis=(-2, -1), dtype=self.dtype, name="out")(v)
+
+
 class SegmentFusion(nn.Module):
     """HiPolicy's global feature: CLS-token self-attention over the ``num_segments`` segment tokens of each sample.
 
@@ -285,6 +310,10 @@ class SegmentFusion(nn.Module):
     ``L*C``; the CLS output is the global feature. Attention is over tokens *within* a sample (unlike the release,
     whose ``batch_first=False`` attention runs along the batch and so makes the CLS output a learned constant,
     ``out_proj(v_proj(cls))``; see the module docstring).
+
+    ``kind='release'`` computes the release's function instead: ``out_proj(v_proj(cls))`` reshaped as the release
+    reshapes it (``(C, L)``, channels first), the same for every sample and input (``ReleaseFusionAttention``);
+    it needs ``L*C`` divisible by ``num_heads``, as torch does.
 
     ``token_dim`` (a model change, not the paper's form; None = the paper's): each segment token is first
     projected ``L*C -> token_dim`` (one shared ``Dense``), the attention runs on ``token_dim``-wide tokens and only
@@ -297,6 +326,7 @@ class SegmentFusion(nn.Module):
     num_heads: int = 8
     compute_dtype: ComputeDtype = "float32"  # the attention's projections and scores; the output is float32
     token_dim: int | None = None
+    kind: FusionKind = "attention"
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -304,6 +334,15 @@ class SegmentFusion(nn.Module):
         seg = t // self.num_segments
         d = seg * c
         dtype = jnp.dtype(self.compute_dtype)
+        if self.kind == "release":
+            if d % self.num_heads:
+                raise ValueError(f"model.fusion_heads: the release's fusion needs the token size L_c*C={d} divisible "
+                                 f"by fusion_heads={self.num_heads} (torch's MultiheadAttention does)")
+            # the release's function: a learned constant, laid out as its (C, L_c) reshape of the CLS output
+            cls = self.param("cls", nn.initializers.normal(stddev=1.0), (1, 1, d))
+            glob = ReleaseFusionAttention(self.num_heads, d, d, dtype, name="attention")(cls[0, 0])
+            glob = glob.astype(jnp.float32).reshape(c, seg).T  # (L, C)
+            return jnp.broadcast_to(glob, (b, seg, c))
         tokens = x.reshape(b, self.num_segments, d)
         light = self.token_dim is not None and d > self.token_dim
         if light:
@@ -350,13 +389,15 @@ class ConditionalResidualBlock1D(nn.Module):
     fusion_heads: int = 8
     compute_dtype: ComputeDtype = "float32"
     fusion_token_dim: int | None = None
+    fusion_kind: FusionKind = "attention"
 
     @nn.compact
     def __call__(self, x: jax.Array, film_cond) -> jax.Array:
         c, dt = self.out_channels, self.compute_dtype
         embed = FiLMHead(2 * c, name="film")(film_cond)  # (B, K, 2C)
         if self.fusion:
-            glob = SegmentFusion(self.num_segments, self.fusion_heads, dt, self.fusion_token_dim, name="fusion")(x)  # (B, L, C_in)
+            glob = SegmentFusion(self.num_segments, self.fusion_heads, dt, self.fusion_token_dim, self.fusion_kind,
+                                 name="fusion")(x)  # (B, L, C_in)
             glob = jnp.tile(glob, (1, self.num_segments, 1))  # same global feature for every segment
             h = Conv1dBlock(2 * c, self.kernel_size, self.n_groups, dt, name="block0")(jnp.concatenate([x, glob], -1))
             h = jnp.concatenate([apply_film(h[..., :c], embed), h[..., c:]], axis=-1)
@@ -374,7 +415,8 @@ class ConditionalUnet1D(nn.Module):
     Fields: ``down_dims`` (channel width per level), ``kernel_size``, ``n_groups`` (GroupNorm), ``step_embed_dim``,
     ``num_freqs`` (M), ``chunk_len`` (L_c), ``condition`` ('hier' | 'low' | 'high'), ``fusion`` (global fusion, only
     active when M > 1), ``fusion_heads``, ``fusion_token_dim`` (None: the paper's full-width segment tokens; else the
-    lighter fusion of ``SegmentFusion``), ``compute_dtype`` ('float32' | 'bfloat16': the operands of every
+    lighter fusion of ``SegmentFusion``), ``fusion_kind`` ('attention': per-sample attention over the segment
+    tokens, as the paper describes; 'release': the release's learned constant, for its weights), ``compute_dtype`` ('float32' | 'bfloat16': the operands of every
     convolution and of the fusion attention; parameters, accumulation, GroupNorm, Mish, FiLM and the output stay
     float32). ``chunk_len`` must be divisible by ``2^(len(down_dims)-1)``.
     """
@@ -390,6 +432,7 @@ class ConditionalUnet1D(nn.Module):
     fusion_heads: int = 8
     compute_dtype: ComputeDtype = "float32"
     fusion_token_dim: int | None = None
+    fusion_kind: FusionKind = "attention"
 
     @property
     def uses_fusion(self) -> bool:
@@ -465,7 +508,8 @@ class ConditionalUnet1D(nn.Module):
             films = film
         dt = self.compute_dtype
         blocks = {name: ConditionalResidualBlock1D(ch, self.kernel_size, self.n_groups, fuse, self.num_freqs,
-                                                   self.fusion_heads, dt, self.fusion_token_dim, name=name)
+                                                   self.fusion_heads, dt, self.fusion_token_dim,
+                                                   self.fusion_kind, name=name)
                   for name, ch, fuse in self.block_specs()}
 
         def res(name, h):

@@ -123,7 +123,8 @@ def heldout_dataset(run: Run) -> SequenceDataset:
                                 f"experiments.collect")
     buffer = ReplayBuffer.load(meta["data"])
     _, val = train_heldout_datasets(buffer, cfg.chunk, cfg.encoder.obs_keys, float(meta["val_ratio"]), run.seed,
-                                    normalizer=run.policy.normalizer)
+                                    normalizer=run.policy.normalizer,
+                                    max_action_pad=meta["train"].get("max_action_pad"))  # absent: written before it
     return val
 
 

@@ -161,7 +161,7 @@ def dry_run(cfg: RunConfig) -> dict:
         check_buffer(buffer, cfg.policy.encoder, path)
     check_buffer_fits_env(buffer, cfg.task_spec(), path)
     train_ds, val_ds = train_heldout_datasets(buffer, cfg.policy.chunk, cfg.policy.encoder.obs_keys, cfg.val_ratio,
-                                              cfg.train.seed)
+                                              cfg.train.seed, max_action_pad=cfg.train.max_action_pad)
     if len(train_ds) < cfg.train.batch_size:
         raise ValueError(f"train.batch_size: {cfg.train.batch_size} exceeds the {len(train_ds)} training windows")
     batch = train_ds.get_batch(np.arange(2))
@@ -237,7 +237,7 @@ def _train(cfg: RunConfig, out: str) -> dict:
     check_buffer_fits_env(buffer, env, cfg.data_path())  # before any training: the run is evaluated in this env
     policy = cfg.policy
     train_ds, val_ds = train_heldout_datasets(buffer, policy.chunk, policy.encoder.obs_keys, cfg.val_ratio,
-                                              cfg.train.seed)
+                                              cfg.train.seed, max_action_pad=cfg.train.max_action_pad)
     print(f"data: {buffer.num_episodes} episodes, {buffer.num_frames} frames; {len(train_ds)} train / "
           f"{len(val_ds)} held-out windows")
     keys = run_keys(cfg.train.seed)
