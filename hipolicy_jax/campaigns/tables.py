@@ -399,18 +399,21 @@ def main_table(args: MainArgs) -> str:
 
 
 ABLATION = [("Hier.", ()), ("Low", (("model.condition", "low"),)), ("High", (("model.condition", "high"),)),
-            ("w/o Fusion", (("model.fusion", False),)), ("w/o Hier.", DP)]
+            ("w/o Fusion", (("model.fusion", False),)), ("Release fusion", (("model.fusion_kind", "release"),)),
+            ("w/o Hier.", DP)]
 
 
 def ablation_table(args: AblationArgs) -> str:
     columns = [Column(label, "state", changes) for label, changes in ABLATION]
     records = collect(args, columns)
     labels = [c.label for c in columns]
-    rows = grouped_rows(args, records, labels, paired=[("Hier.", "w/o Hier.")])
-    table = markdown_table(["Task", *labels, "Hier. − w/o Hier. (points)"], rows)
+    rows = grouped_rows(args, records, labels, paired=[("Hier.", "w/o Hier."), ("Hier.", "Release fusion")])
+    table = markdown_table(["Task", *labels, "Hier. − w/o Hier. (points)", "Hier. − Release fusion (points)"], rows)
     notes = ["Success rate (%) with entropy-guided execution. Condition: every frequency segment conditioned on its "
              "own frequency's observations (Hier.), or all on the lowest (Low) / highest (High); w/o Fusion: no "
-             "CLS-token attention; w/o Hier.: one stride (DP).", PAIRED_NOTE]
+             "CLS-token attention; Release fusion: the HiPolicy release's fusion, whose batch_first=False attention "
+             "makes it a learned constant, out_proj(v_proj(cls)) (model.fusion_kind='release'); w/o Hier.: one "
+             "stride (DP).", PAIRED_NOTE]
 
     figure = success_by_task_figure(args, records, labels, "ablation")
     return write_results(args, "Ablation: success rate (%)", notes, table, records, figure)
