@@ -45,11 +45,13 @@ def main(args: ImportArgs) -> str:
     conv = convert(args.kind, args.ckpt, args.config, args.weights)
     if ":" not in args.task:  # an MJX task: its sizes must be the policy's
         env = make(args.task)
-        state_dim = conv.cfg.encoder.state_dims or conv.obs_shapes["state"][0]
-        if env.action_dim != conv.action_dim or getattr(env, "state_dim", state_dim) < state_dim:
-            raise ValueError(f"task: {args.task} has action dim {env.action_dim} and state dim "
-                             f"{getattr(env, 'state_dim', '?')}; the checkpoint's policy takes actions of "
-                             f"{conv.action_dim} and states of {state_dim}")
+        reads = conv.cfg.encoder.state_dims  # an image policy reads the first state_dims features; else all
+        want = reads or conv.obs_shapes["state"][0]
+        fits = env.state_dim >= want if reads else env.state_dim == want
+        if env.action_dim != conv.action_dim or not fits:
+            raise ValueError(f"task: {args.task} has actions of {env.action_dim} and states of {env.state_dim}; the "
+                             f"checkpoint's policy takes actions of {conv.action_dim} and states of "
+                             f"{'at least ' if reads else ''}{want}")
     run = write_run(conv, args.out, args.task, data=args.data, val_ratio=args.val_ratio)
     c = conv.cfg
     print(f"imported {conv.source['policy_target'] or args.kind} ({conv.source['weights']} weights, step "

@@ -13,7 +13,8 @@ Two parts, each in its own process (both define a package named ``diffusion_poli
   ``obs (B, 2, 7)`` normalised and flattened as ``predict_action`` does), one DDPM step of its noise scheduler with
   the noise it drew (at t = 99, 50, 1, 0), one step of diffusers' ``DDIMScheduler`` with 10 inference steps (as
   DP's DDIM configs; t = 90, 40, 0), and the normaliser's round trip. ``dp_lowdim_ema.safetensors`` is the EMA policy's state dict
-  alone, the torch-free form ``experiments.import_checkpoint`` also reads.
+  alone, the torch-free form ``experiments.import_checkpoint`` also reads. ``dp_image.npz`` /
+  ``dp_image_config.yaml``: DP's own ``DiffusionUnetImagePolicy`` with its ResNet-18 encoder (``make_dp_image``).
 * ``release``: the HiPolicy release (``HzmSailor/HiPolicy``, folder ``release/HiPolicy``): its
   ``conditional_unet1d.py`` and ``cross_attention.py`` laid over Diffusion Policy's package, as the release runs
   them, with ``HIPOLICY_BENCHMARK=robotwin_v2``. A hierarchical ``ConditionalUnet1D`` (action 4-D, L_c 8,
@@ -52,7 +53,7 @@ OBS_DIM, ACTION_DIM = 7, 4  # press_button's state and action
 HORIZON, N_OBS, N_ACTION = 16, 2, 8
 DOWN_DIMS, STEP_EMBED, KERNEL = [16, 32], 16, 5
 BATCH = 3
-RELEASE_ENCODER_SEED, RELEASE_UNET_SEED = 58, 59
+RELEASE_ENCODER_SEED, RELEASE_UNET_SEED, DP_IMAGE_SEED = 58, 59, 60
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
@@ -129,6 +130,105 @@ def make_dp(dp_src: str, out: str) -> None:
     from safetensors.torch import save_file
     save_file({k: v.contiguous() for k, v in policy.state_dict().items()},
               os.path.join(out, "dp_lowdim_ema.safetensors"))
+    make_dp_image(dp_src, out)
+
+
+def _load_seeded():
+    """``seeded_torch_state`` from ``hipolicy_jax/porting/encoders.py``, loaded by path (numpy only)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "porting_encoders", os.path.join(ROOT, "hipolicy_jax", "porting", "encoders.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.seeded_torch_state
+
+
+def _seed_module(module, seed: int, skip: tuple[str, ...] = ()) -> dict[str, tuple[int, ...]]:
+    """Overwrite ``module``'s tensors with ``seeded_torch_state(seed)`` (state-dict order); → their shapes."""
+    import torch
+
+    shapes = {k: tuple(v.shape) for k, v in module.state_dict().items()
+              if not k.endswith("_dummy_variable") and not k.startswith(skip)}
+    weights = _load_seeded()(shapes, seed)
+    missing, unexpected = module.load_state_dict({k: torch.from_numpy(v) for k, v in weights.items()}, strict=False)
+    assert not unexpected and all(k.endswith("_dummy_variable") or k.startswith(skip) for k in missing), \
+        (missing, unexpected)
+    return shapes
+
+
+def make_dp_image(dp_src: str, out: str) -> None:
+    """``dp_image.npz`` / ``dp_image_config.yaml``: Diffusion Policy's own ``DiffusionUnetImagePolicy`` (its
+    ``MultiImageObsEncoder``: ResNet-18, GroupNorm, ImageNet normalisation, a 52 px crop of 56 px images, centre crop
+    in eval; ``head_cam`` and ``agent_pos`` (4); 2 observation steps, horizon 16, 8 executed), weights drawn by
+    ``seeded_torch_state`` (redrawn by the test), a fitted ``LinearNormalizer`` with the image range normaliser. The
+    reference follows ``predict_action``'s conditioning: normalise, the first ``n_obs_steps`` frames through the
+    encoder, features flattened frame-major into the global condition, then the U-Net."""
+    import torch
+    from diffusers.schedulers.scheduling_ddpm import DDPMScheduler
+    from diffusion_policy.common.normalize_util import get_image_range_normalizer
+    from diffusion_policy.model.common.normalizer import LinearNormalizer
+    from diffusion_policy.model.vision.model_getter import get_resnet
+    from diffusion_policy.model.vision.multi_image_obs_encoder import MultiImageObsEncoder
+    from diffusion_policy.policy.diffusion_unet_image_policy import DiffusionUnetImagePolicy
+
+    size, low, crop = 56, 4, 52
+    shape_meta = {"obs": {"head_cam": {"shape": [3, size, size], "type": "rgb"},
+                          "agent_pos": {"shape": [low], "type": "low_dim"}}, "action": {"shape": [ACTION_DIM]}}
+    enc = MultiImageObsEncoder(shape_meta, get_resnet("resnet18"), resize_shape=None, crop_shape=(crop, crop),
+                               random_crop=True, use_group_norm=True, share_rgb_model=False, imagenet_norm=True)
+    scheduler = DDPMScheduler(num_train_timesteps=100, beta_start=0.0001, beta_end=0.02,
+                              beta_schedule="squaredcos_cap_v2", variance_type="fixed_small", clip_sample=True,
+                              prediction_type="epsilon")
+    policy = DiffusionUnetImagePolicy(shape_meta, scheduler, enc, horizon=HORIZON, n_action_steps=N_ACTION,
+                                      n_obs_steps=N_OBS, num_inference_steps=100, obs_as_global_cond=True,
+                                      diffusion_step_embed_dim=STEP_EMBED, down_dims=DOWN_DIMS, kernel_size=KERNEL,
+                                      n_groups=8, cond_predict_scale=True)
+    shapes = _seed_module(policy, DP_IMAGE_SEED, skip=("normalizer.",))
+    rng = np.random.default_rng(5)
+    normalizer = LinearNormalizer()
+    normalizer.fit({"agent_pos": torch.from_numpy((rng.standard_normal((300, low)) * [2.0, 0.3, 1.0, 0.05]
+                                                   ).astype(np.float32)),
+                    "action": torch.from_numpy(rng.uniform(-2, 1, (300, ACTION_DIM)).astype(np.float32))},
+                   last_n_dims=1, mode="limits")
+    normalizer["head_cam"] = get_image_range_normalizer()
+    policy.set_normalizer(normalizer)
+    policy.eval()
+    b = 2
+    images = rng.integers(0, 256, (b, N_OBS, size, size, 3), dtype=np.uint8)
+    agent_pos = (rng.standard_normal((b, N_OBS, low)) * [2.0, 0.3, 1.0, 0.05]).astype(np.float32)
+    x = torch.from_numpy(rng.standard_normal((b, HORIZON, ACTION_DIM)).astype(np.float32))
+    t = torch.tensor([12, 88])
+    with torch.no_grad():
+        nobs = policy.normalizer.normalize({"head_cam": torch.from_numpy(np.moveaxis(images, -1, 2) / 255),
+                                            "agent_pos": torch.from_numpy(agent_pos)})
+        this = {k: v[:, :N_OBS].reshape(-1, *v.shape[2:]) for k, v in nobs.items()}
+        cond = policy.obs_encoder(this).reshape(b, -1)
+        y = policy.model(x, t, local_cond=None, global_cond=cond)
+    norm = {f"normalizer.{k}": _np(v) for k, v in policy.normalizer.state_dict().items()
+            if not k.startswith("params_dict.head_cam")}
+    np.savez_compressed(os.path.join(out, "dp_image.npz"), images=images, agent_pos=agent_pos, x=_np(x), t=_np(t),
+                        cond=_np(cond), y=_np(y), seed=DP_IMAGE_SEED, param_names=np.array(list(shapes)),
+                        param_shapes=np.array([",".join(map(str, v)) for v in shapes.values()]), **norm)
+    import yaml
+
+    config = {"horizon": HORIZON, "n_obs_steps": N_OBS, "n_action_steps": N_ACTION, "n_latency_steps": 0,
+              "obs_as_global_cond": True, "shape_meta": shape_meta,
+              "policy": {"_target_": "diffusion_policy.policy.diffusion_unet_image_policy.DiffusionUnetImagePolicy",
+                         "noise_scheduler": {"_target_": "diffusers.schedulers.scheduling_ddpm.DDPMScheduler",
+                                             **{k: scheduler.config[k] for k in (
+                                                 "num_train_timesteps", "beta_start", "beta_end", "beta_schedule",
+                                                 "variance_type", "clip_sample", "prediction_type")}},
+                         "obs_encoder": {"rgb_model": {"name": "resnet18", "weights": None}, "resize_shape": None,
+                                         "crop_shape": [crop, crop], "random_crop": True, "use_group_norm": True,
+                                         "share_rgb_model": False, "imagenet_norm": True},
+                         "horizon": HORIZON, "n_action_steps": N_ACTION, "n_obs_steps": N_OBS,
+                         "num_inference_steps": 100, "obs_as_global_cond": True,
+                         "diffusion_step_embed_dim": STEP_EMBED, "down_dims": DOWN_DIMS, "kernel_size": KERNEL,
+                         "n_groups": 8, "cond_predict_scale": True}}
+    with open(os.path.join(out, "dp_image_config.yaml"), "w") as f:
+        yaml.safe_dump(config, f, sort_keys=False)
+    print("wrote", os.path.join(out, "dp_image.npz"), "and dp_image_config.yaml")
 
 
 def make_release(dp_src: str, release_src: str, out: str) -> None:
@@ -182,8 +282,6 @@ def make_release_policy(out: str) -> None:
     upstream modules. The forward pass follows the release's ``predict_action`` for robotwin_v2: normalise, frames
     [0, 3, 6] / [2, 4, 6] / [4, 5, 6] of the 7 observed ones through the encoder, each stride's features flattened
     frame-major into its condition, then the U-Net."""
-    import importlib.util
-
     import torch
     from diffusion_policy.common.normalize_util import get_image_range_normalizer
     from diffusion_policy.model.common.normalizer import LinearNormalizer
@@ -191,10 +289,6 @@ def make_release_policy(out: str) -> None:
     from diffusion_policy.model.vision.model_getter import get_resnet
     from diffusion_policy.model.vision.multi_image_obs_encoder import MultiImageObsEncoder
 
-    spec = importlib.util.spec_from_file_location(
-        "porting_encoders", os.path.join(ROOT, "hipolicy_jax", "porting", "encoders.py"))
-    porting = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(porting)
     size, low = 56, 4
     shape_meta = {"obs": {"head_cam": {"shape": [3, size, size], "type": "rgb"},
                           "agent_pos": {"shape": [low], "type": "low_dim"}}, "action": {"shape": [ACTION_DIM]}}
@@ -205,12 +299,7 @@ def make_release_policy(out: str) -> None:
                             cond_predict_scale=True)
     shapes = {}
     for prefix, module, seed in (("obs_encoder.", enc, RELEASE_ENCODER_SEED), ("model.", net, RELEASE_UNET_SEED)):
-        sd = {k: tuple(v.shape) for k, v in module.state_dict().items() if k != "_dummy_variable"}
-        weights = porting.seeded_torch_state(sd, seed)
-        missing, unexpected = module.load_state_dict({k: torch.from_numpy(v) for k, v in weights.items()},
-                                                     strict=False)
-        assert not unexpected and all(k == "_dummy_variable" for k in missing), (missing, unexpected)
-        shapes.update({prefix + k: v for k, v in sd.items()})
+        shapes.update({prefix + k: v for k, v in _seed_module(module, seed).items()})
     enc.eval()
     net.eval()
     rng = np.random.default_rng(4)

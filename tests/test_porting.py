@@ -224,19 +224,69 @@ def test_safetensors_with_a_config_equals_the_ckpt(dp, tmp_path):
 # ---------------------------------------------------------------- the release's image policy end to end
 
 
-def _release_policy_files(tmp_path) -> tuple[str, str, dict]:
+def _seeded_policy_files(tmp_path, name: str, seeds: dict[str, str]) -> tuple[str, str, dict]:
+    """``(safetensors, config)`` of the fixture ``name``: its weights redrawn per prefix from its seeds (``seeds``:
+    {prefix: npz key of the seed}), its normaliser as stored, its config beside it."""
     from safetensors.numpy import save_file
 
-    f = _load("release_policy.npz")
+    f = _load(f"{name}.npz")
     shapes = {n: tuple(int(x) for x in s.split(",")) for n, s in zip(f["param_names"], f["param_shapes"])}
     sd = {k: v for k, v in f.items() if k.startswith("normalizer.")}
-    for prefix, seed in (("obs_encoder.", f["encoder_seed"]), ("model.", f["unet_seed"])):
+    for prefix, seed in seeds.items():
         part = {k[len(prefix):]: v for k, v in shapes.items() if k.startswith(prefix)}
-        sd.update({prefix + k: v for k, v in seeded_torch_state(part, int(seed)).items()})
-    save_file(sd, str(tmp_path / "release.safetensors"))
-    with open(ROOT / "tests" / "fixtures" / "torch" / "release_policy_config.yaml") as fh:
-        (tmp_path / "config.yaml").write_text(fh.read())
-    return str(tmp_path / "release.safetensors"), str(tmp_path / "config.yaml"), f
+        sd.update({prefix + k: v for k, v in seeded_torch_state(part, int(f[seed])).items()})
+    save_file(sd, str(tmp_path / f"{name}.safetensors"))
+    return str(tmp_path / f"{name}.safetensors"), str(FIX / f"{name}_config.yaml"), f
+
+
+def _release_policy_files(tmp_path) -> tuple[str, str, dict]:
+    return _seeded_policy_files(tmp_path, "release_policy", {"obs_encoder.": "encoder_seed", "model.": "unet_seed"})
+
+
+def test_dp_image_policy_equals_diffusion_policy(tmp_path):
+    """DP's own DiffusionUnetImagePolicy: its ResNet-18 encoder with a 52 px centre crop (eval) of 56 px images, two
+    observed frames, the U-Net; condition and output equal."""
+    weights, config, f = _seeded_policy_files(tmp_path, "dp_image", {"": "seed"})
+    conv = convert("dp", weights, config)
+    assert conv.cfg.chunk == ChunkConfig(strides=(1,), obs_horizon=2, chunk_len=16, action_offset=-1, exec_len=8)
+    assert conv.cfg.encoder.image_encoder == "resnet_avgpool" and conv.cfg.encoder.crop_size == 52
+    assert conv.obs_shapes == {"state": (4,), "image": (56, 56, 3)}
+    nobs = conv.normalizer.normalize_obs({"state": f["agent_pos"][:, None], "image": f["images"][:, None]})
+    net = PolicyNet(conv.cfg, conv.action_dim)
+    cond = net.apply(conv.variables, nobs, method=net.encode)
+    assert np.abs(np.asarray(cond)[:, 0] - f["cond"]).max() < TOL
+    y = net.apply(conv.variables, jnp.asarray(f["x"]), jnp.asarray(f["t"]), cond, method=net.denoise)
+    assert np.abs(np.asarray(y) - f["y"]).max() < TOL
+    assert np.abs(f["y"]).max() > 0.5
+
+
+def test_unsupported_checkpoints_are_refused_naming_why(tmp_path):
+    weights, config, _ = _seeded_policy_files(tmp_path, "dp_image", {"": "seed"})
+    cfg = yaml.safe_load(open(config))
+    for change, msg in (
+            (("policy", "_target_", "diffusion_policy.policy.diffusion_transformer_lowdim_policy.X"),
+             r"policy\._target_ 'diffusion_policy\.policy\.diffusion_transformer_lowdim_policy\.X' is not supported"),
+            (("policy", "noise_scheduler", {"_target_": "diffusers.schedulers.scheduling_ddpm.DDPMScheduler",
+                                            "variance_type": "fixed_small_log"}),
+             r"variance_type 'fixed_small_log': only 'fixed_small'"),
+            (("policy", "obs_encoder", {**cfg["policy"]["obs_encoder"], "resize_shape": [40, 40]}),
+             r"resize_shape \[40, 40\] is not implemented")):
+        bad = yaml.safe_load(open(config))
+        bad[change[0]][change[1]] = change[2]
+        (tmp_path / "bad.yaml").write_text(yaml.safe_dump(bad))
+        with pytest.raises(ValueError, match=msg):
+            convert("dp", weights, str(tmp_path / "bad.yaml"))
+    with pytest.raises(ValueError, match=r"kind: must be 'dp' or 'hipolicy-release', got 'x'"):
+        convert("x", weights, config)
+
+
+def test_import_refuses_a_task_of_other_sizes(tmp_path):
+    from experiments.import_checkpoint import ImportArgs, main
+
+    with pytest.raises(ValueError, match=r"task: stack_cubes has actions of 4 and states of 13; the checkpoint's "
+                                         r"policy takes actions of 4 and states of 7"):
+        main(ImportArgs("dp", str(FIX / "dp_lowdim.ckpt"), str(tmp_path / "run"), task="stack_cubes"))
+    assert not (tmp_path / "run").exists()
 
 
 def test_release_image_policy_equals_the_release(tmp_path):
