@@ -19,7 +19,10 @@ Action (4,), in one of two spaces (``ACTION_SPACES``):
   moves at most 1 cm a step towards it, and an unreached target is approached over the next steps. The expert's
   episodes are the same in both spaces; only the recorded action differs (the target after each step). A chunk
   of absolute targets executed at a larger stride moves the hand faster (up to that bound), as in the MJX tasks; a
-  chunk of displacements does not.
+  chunk of displacements does not. The bound is an option of executing targets: ``move_limit`` (in ``action_scale``
+  units; 1 = 1 cm a step, the default; s gives a stride-s chunk the headroom of s steps) and ``move_clip``
+  (``axis``: clip each axis, the default and Meta-World's own; ``direction``: scale the move, keeping its
+  direction). The scripted expert and the demos always run at Meta-World's own bound.
 
 Episodes are truncated at 500 steps.
 
@@ -46,6 +49,10 @@ ACTION_DIM = 4
 PROPRIO_DIM = 4  # hand xyz + gripper opening (DP3's agent_pos is 9-D: hand xyz + both fingertips' xyz)
 MAX_STEPS = 500
 ACTION_SPACES = ("delta", "target")
+# How a ``target`` action's move is bounded per control step (the limit in units of ``action_scale``, 1 cm):
+# ``axis`` clips each axis on its own (Meta-World's own clip: a far target bends the path towards the diagonal);
+# ``direction`` scales the whole move so its largest axis is within the limit (the path points at the target).
+MOVE_CLIPS = ("axis", "direction")
 # the project's task-name prefix of a policy trained on each action space (``metaworld:assembly``,
 # ``metaworld-target:assembly``; hipolicy_jax.envs.external.SUITES)
 SUITE_OF_SPACE = {"delta": "metaworld", "target": "metaworld-target"}
@@ -84,7 +91,8 @@ class Episode:
 class MetaWorldTask:
     """One Meta-World v3 task (goal observable) with seeded resets and its scripted expert."""
 
-    def __init__(self, task: str, max_steps: int = MAX_STEPS, action_space: str = "delta"):
+    def __init__(self, task: str, max_steps: int = MAX_STEPS, action_space: str = "delta", move_limit: float = 1.0,
+                 move_clip: str = "axis"):
         envs, policies = _import_metaworld()
         name = env_name(task)
         key = f"{name}-goal-observable"
@@ -95,6 +103,7 @@ class MetaWorldTask:
             raise ValueError(f"action_space: one of {', '.join(ACTION_SPACES)}, got {action_space!r}")
         if not 1 <= max_steps <= MAX_STEPS:
             raise ValueError(f"max_steps: must be in [1, {MAX_STEPS}] (Meta-World's limit), got {max_steps}")
+        self.check_move(action_space, move_limit, move_clip)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             self.env = envs[key]()
@@ -105,7 +114,20 @@ class MetaWorldTask:
         self.env.seeded_rand_vec = True
         self.expert = policies[name]()
         self.task, self.name, self.max_steps, self.action_space = task, name, max_steps, action_space
+        self.move_limit, self.move_clip = float(move_limit), move_clip
         self._obs: np.ndarray | None = None
+
+    @staticmethod
+    def check_move(action_space: str, move_limit: float, move_clip: str) -> None:
+        """``ValueError`` naming the option unless ``move_limit`` / ``move_clip`` are valid for ``action_space``."""
+        if move_clip not in MOVE_CLIPS:
+            raise ValueError(f"move_clip: one of {', '.join(MOVE_CLIPS)}, got {move_clip!r}")
+        if not (np.isfinite(move_limit) and move_limit > 0):
+            raise ValueError(f"move_limit: must be > 0 (units of 1 cm a step), got {move_limit}")
+        if action_space == "delta" and (move_limit != 1.0 or move_clip != "axis"):
+            raise ValueError(f"move_limit / move_clip: bound the moves of absolute targets (action_space 'target'); "
+                             f"displacements are Meta-World's own, got move_limit={move_limit}, "
+                             f"move_clip={move_clip!r} with action_space 'delta'")
 
     @property
     def model(self) -> mujoco.MjModel:
@@ -128,7 +150,19 @@ class MetaWorldTask:
     def step(self, action: np.ndarray) -> tuple[np.ndarray, bool, bool]:
         """Apply ``action`` (4,) of the task's action space → (observation, success, truncated)."""
         action = np.asarray(action, np.float64)
-        return self._step_delta(self.to_delta(action) if self.action_space == "target" else action)
+        if self.action_space != "target":
+            return self._step_delta(action)
+        # the move to the target in units of the limit; Meta-World clips each axis to [-1, 1] of its action_scale,
+        # which is the limit while the step runs
+        move = (action[:3] - self.data.mocap_pos[0]) / (self.env.action_scale * self.move_limit)
+        if self.move_clip == "direction":
+            move = move * min(1.0, 1.0 / max(float(np.abs(move).max()), 1e-12))
+        base = self.env.action_scale
+        self.env.action_scale = base * self.move_limit
+        try:
+            return self._step_delta(np.concatenate([move, action[3:]]))
+        finally:
+            self.env.action_scale = base
 
     def _step_delta(self, action: np.ndarray) -> tuple[np.ndarray, bool, bool]:
         """Apply a ``delta`` action (4,), clipped to [-1, 1]."""

@@ -45,7 +45,8 @@ import urllib.request
 
 import numpy as np
 
-from metaworld_bridge.env import ACTION_DIM, ACTION_SPACES, MAX_STEPS, OBS_DIM, SUITE_OF_SPACE, MetaWorldTask
+from metaworld_bridge.env import (ACTION_DIM, ACTION_SPACES, MAX_STEPS, MOVE_CLIPS, OBS_DIM, SUITE_OF_SPACE,
+                                  MetaWorldTask)
 from metaworld_bridge.pointcloud import DP3_IMAGE_SIZE, CameraConfig, PointCloudCamera
 from metaworld_bridge.tasks import task_name
 
@@ -119,8 +120,9 @@ class _Slot:
     """One env and its connection: runs one episode at a time."""
 
     def __init__(self, task: str, make_client, shapes: dict, camera_size: int, max_steps: int,
-                 action_space: str = "delta"):
-        self.env = MetaWorldTask(task, max_steps=max_steps, action_space=action_space)
+                 action_space: str = "delta", move_limit: float = 1.0, move_clip: str = "axis"):
+        self.env = MetaWorldTask(task, max_steps=max_steps, action_space=action_space, move_limit=move_limit,
+                                 move_clip=move_clip)
         self.client = make_client()
         self.shapes = shapes
         self.camera = None
@@ -182,9 +184,11 @@ def _openpi_client(url: str, api_key: str | None):
 
 def evaluate(task: str, url: str, episodes: int, first_seed: int, *, num_envs: int = 10, max_steps: int = MAX_STEPS,
              camera_size: int = DP3_IMAGE_SIZE, api_key: str | None = None, progress: bool = True,
-             action_space: str = "delta") -> dict:
+             action_space: str = "delta", move_limit: float = 1.0, move_clip: str = "axis") -> dict:
     """Run ``episodes`` episodes of ``task`` (seeds ``first_seed`` ...) against the server at ``url``, executing its
-    actions in ``action_space``; → the record (see the module docstring)."""
+    actions in ``action_space`` (targets with at most ``move_limit`` cm a step, bounded by ``move_clip``:
+    ``env.MOVE_CLIPS``); → the record (see the module docstring)."""
+    MetaWorldTask.check_move(action_space, move_limit, move_clip)
     if episodes < 1:
         raise ValueError(f"episodes: must be >= 1, got {episodes}")
     if num_envs < 1:
@@ -199,7 +203,7 @@ def evaluate(task: str, url: str, episodes: int, first_seed: int, *, num_envs: i
     num_envs = min(num_envs, episodes)
     clients = iter([first])
     slots = [_Slot(task, lambda: next(clients, None) or _openpi_client(url, api_key), shapes, camera_size, max_steps,
-                   action_space) for _ in range(num_envs)]
+                   action_space, move_limit, move_clip) for _ in range(num_envs)]
     seeds = list(range(first_seed, first_seed + episodes))
     done: list[EpisodeResult] = []
     wait_s = env_s = 0.0
@@ -242,6 +246,7 @@ def evaluate(task: str, url: str, episodes: int, first_seed: int, *, num_envs: i
         "what": "Meta-World closed-loop evaluation through the policy server (metaworld_bridge.evaluate)",
         "task": task_name(task), "url": url, "episodes": len(done), "first_seed": first_seed,
         "seeds": [r.seed for r in done], "max_steps": max_steps, "envs": num_envs, "action_space": action_space,
+        "move_limit": move_limit, "move_clip": move_clip,
         "success_rate": successes / len(done), "successes": successes,
         "mean_steps": float(np.mean([r.steps for r in done])),
         "policy": {k: metadata.get(k) for k in ("task", "run", "checkpoint_step", "strides", "chunk_len",
@@ -278,13 +283,20 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--action-space", default="delta", choices=list(ACTION_SPACES),
                         help="how the served policy's actions are executed: Meta-World's displacements (delta, a "
                              "metaworld:<task> policy) or absolute hand targets (target, metaworld-target:<task>)")
+    parser.add_argument("--move-limit", type=float, default=1.0,
+                        help="target actions: the most the hand's target moves in a control step, in cm (Meta-World: "
+                             "1); s gives a stride-s chunk the headroom of s steps")
+    parser.add_argument("--move-clip", default="axis", choices=list(MOVE_CLIPS),
+                        help="target actions: clip each axis to the limit (axis, Meta-World's own) or scale the move "
+                             "keeping its direction (direction)")
     parser.add_argument("--out", default="", help="write the record here (JSON)")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     try:
         record = evaluate(args.task, args.url, args.episodes, args.first_seed, num_envs=args.envs,
                           max_steps=args.max_steps, camera_size=args.camera_size, api_key=args.api_key or None,
-                          progress=not args.no_progress, action_space=args.action_space)
+                          progress=not args.no_progress, action_space=args.action_space,
+                          move_limit=args.move_limit, move_clip=args.move_clip)
     except (ValueError, ConnectionError, RuntimeError) as e:
         raise SystemExit(f"error: {e}")
     record["command"] = " ".join(["python -m metaworld_bridge.evaluate", *(argv if argv is not None else sys.argv[1:])])

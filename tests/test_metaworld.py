@@ -147,6 +147,39 @@ print("ok")
     assert report["chunk_len"] == 8 and report["seeds"] == [0, 1]
 
 
+@needs_venv
+def test_target_moves_are_bounded_as_configured():
+    """A target 3 cm along x and 1 cm along y, one control step: Meta-World's own bound (1 cm, each axis clipped)
+    bends the move to (1, 1) cm; ``direction`` keeps it pointing at the target (1, 1/3); a limit of s cm gives s
+    steps of headroom ((2, 2/3) at 2; reached at 3 or 5); the env's own action_scale is restored after each step;
+    displacement actions refuse the options."""
+    code = """
+import numpy as np
+from metaworld_bridge.env import MetaWorldTask
+want = {(1.0, "axis"): [1, 1, 0], (1.0, "direction"): [1, 1 / 3, 0], (2.0, "direction"): [2, 2 / 3, 0],
+        (3.0, "axis"): [3, 1, 0], (5.0, "direction"): [3, 1, 0]}
+for (limit, clip), cm in want.items():
+    env = MetaWorldTask("assembly", 200, action_space="target", move_limit=limit, move_clip=clip)
+    env.reset(0)
+    start = env.data.mocap_pos[0].copy()
+    env.step(np.concatenate([start + [0.03, 0.01, 0.0], [0.0]]))
+    np.testing.assert_allclose((env.data.mocap_pos[0] - start) * 100, cm, atol=1e-9)
+    assert env.env.action_scale == 0.01
+for kwargs, msg in (({"move_limit": 2.0}, "move_limit / move_clip: bound the moves of absolute targets"),
+                    ({"action_space": "target", "move_clip": "sphere"}, "move_clip: one of axis, direction"),
+                    ({"action_space": "target", "move_limit": 0.0}, "move_limit: must be > 0")):
+    try:
+        MetaWorldTask("assembly", 200, **kwargs)
+    except ValueError as e:
+        assert msg in str(e), str(e)
+    else:
+        raise AssertionError(kwargs)
+print("ok")
+"""
+    r = subprocess.run([PYTHON, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-3000:]
+
+
 def _pointcloud_config(path: str, out: str) -> RunConfig:
     return RunConfig(task=f"metaworld:{TASK}", data=path, out=out, val_ratio=0.5,
                      policy=PolicyConfig(model=ModelConfig(size="tiny", fusion_heads=2),
