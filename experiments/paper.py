@@ -15,6 +15,8 @@ Tables (sub-commands), each trained with ``hipolicy_jax.runs.train`` and evaluat
 - ``campaign``: all of the protocol's tables (results/PROTOCOL.md) — every run and evaluation under one progress
   bar with its ETA, then every table from the records and ``findings.md``: each paired comparison of HiPolicy
   with a baseline (DP, DP3, DP+TE, DP+AAC) per task and on average, with its verdict (wins / ties / loses).
+  ``--executor slurm`` (``--slurm-*``, ``--cluster-*``) runs each run as one job of a SLURM job array through
+  submitit and waits for them (``--executor local``: the same jobs as local processes).
 
 Budgets: ``smoke`` (tiny model, a dozen steps: checks the pipeline in a couple of minutes), ``cpu`` (CPU model,
 2000 steps: about 10 minutes of training per run on 2 cores), ``gpu`` (paper-size model, N=100, 100 DDPM steps).
@@ -30,6 +32,7 @@ The protocol of the campaign these tables belong to is ``results/PROTOCOL.md``.
     python -m experiments.paper pilot --budget cpu
     python -m experiments.paper main --budget cpu --regime rlow --seeds 0 1 2
     python -m experiments.paper main --from-records
+    python -m experiments.paper campaign --executor slurm --slurm-partition cpu --cluster-time-min 240
 """
 
 from __future__ import annotations

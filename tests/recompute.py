@@ -113,13 +113,37 @@ def pooled(per_task, bounds=None) -> Est | None:
 
 
 def sign_flip_p(per_task: list[list[np.ndarray]]) -> float:
-    """Exact two-sided sign-flip p over the (task, seed) differences, each task weighing the same."""
+    """Exact two-sided sign-flip p over the (task, seed) differences, each task weighing the same: every sign
+    pattern up to 16 differences, a branch-and-bound count beyond (``sign_flip_count``)."""
     values = [np.array([g.mean() for g in _finite_groups(t)]) for t in per_task]
     flat = np.concatenate(values)
-    assert flat.size <= 16, f"{flat.size} (task, seed) differences: the exact test enumerates at most 2^16 signs"
     weights = np.concatenate([np.full(v.size, 1 / (v.size * len(values))) for v in values])
+    if flat.size > 16:
+        return sign_flip_count(weights * flat, abs(weights @ flat) - 1e-12) / 2 ** flat.size
     signs = 1 - 2 * ((np.arange(2 ** flat.size)[:, None] >> np.arange(flat.size)) & 1)
     return float(np.mean(np.abs(signs @ (weights * flat)) >= abs(weights @ flat) - 1e-12))
+
+
+def sign_flip_count(v: np.ndarray, threshold: float, max_nodes: int = 2_000_000) -> int:
+    """The number of the 2^n sign patterns s with |Σ s_i v_i| ≥ ``threshold``, in integers: signs are chosen from
+    the largest |v_i| down, and a partial sum P with the rest's Σ|v_i| = R is settled at once when every completion
+    reaches the threshold (P − R ≥ t or P + R ≤ −t: 2^rest patterns) or none can (|P| + R < t). Fails past
+    ``max_nodes`` partial sums rather than run for hours (differences of mixed signs near the threshold)."""
+    if threshold <= 0:
+        return 2 ** v.size
+    a = np.sort(np.abs(np.asarray(v, float)))[::-1]
+    rest = np.append(np.cumsum(a[::-1])[::-1], 0.0)  # rest[k] = Σ_{i ≥ k} a_i
+    count, nodes, stack = 0, 0, [(0, 0.0)]
+    while stack:
+        k, partial = stack.pop()
+        nodes += 1
+        assert nodes <= max_nodes, f"sign-flip count: more than {max_nodes} partial sums"
+        r = rest[k]
+        if partial - r >= threshold or partial + r <= -threshold:
+            count += 2 ** (a.size - k)
+        elif abs(partial) + r >= threshold and k < a.size:
+            stack += [(k + 1, partial + a[k]), (k + 1, partial - a[k])]
+    return count
 
 
 def mcnemar_p(pairs: list[tuple[np.ndarray, np.ndarray]]) -> float:
@@ -437,21 +461,43 @@ def saved_groups(new: dict[int, dict], base: dict[int, dict]) -> list[np.ndarray
     return out
 
 
+def succeeded(runs: dict[int, dict]) -> bool:
+    """Whether any episode of any seed succeeded: the column has steps to success on the task."""
+    return any(np.any(e["success"]) for e in runs.values())
+
+
 def speed_rows(tasks: list[str], runs_of, new: str, base: str) -> list[list[str]]:
-    """Per task and on average: base and new success, the success cost, their steps to success, steps saved."""
+    """Per task and on average: base and new success, the success cost, their steps to success, steps saved. The
+    average's steps and steps saved over the tasks where both columns succeeded at least once (both steps columns
+    over the same tasks), its success over all."""
     rows = []
     for label, ts in [(t, [t]) for t in tasks] + ([("**Average**", tasks)] if len(tasks) > 1 else []):
         a, b = [runs_of(t, new) for t in ts], [runs_of(t, base) for t in ts]
         cost, _ = paired_est(a, b)
-        groups = [saved_groups(x, y) for x, y in zip(a, b)]
-        saved = None if not all(groups) else pooled(groups)
+        both = list(zip(a, b))  # one task, or a task without records yet: no average ('–')
+        if len(ts) > 1 and all(x and y for x, y in both):
+            both = [(x, y) for x, y in both if succeeded(x) and succeeded(y)]
+        groups = [saved_groups(x, y) for x, y in both]
+        saved = None if not groups or not all(groups) else pooled(groups)
         saved_text = DASH if saved is None else (
             f"{iv(saved, signed=True)}, p={p_text(saved.p)}"
             + (f" ({speed_word(saved)})" if math.isfinite(saved.low) else ""))
         rows.append([label, cell([success(x) for x in b], RATE), cell([success(x) for x in a], RATE),
                      DASH if cost is None else f"{iv(cost, signed=True)} ({verdict(cost)})",
-                     cell([steps(x) for x in b], COUNT, 1.0), cell([steps(x) for x in a], COUNT, 1.0), saved_text])
+                     *(cell([steps(pair[i]) for pair in both], COUNT, 1.0) if both else DASH for i in (1, 0)),
+                     saved_text])
     return rows
+
+
+def steps_cover_sentence(tasks: list[str], runs_of, new: str, base: str) -> str | None:
+    """The speed table's sentence naming the tasks its average's steps cover, when one is left out (else None)."""
+    both = [t for t in tasks if succeeded(runs_of(t, new)) and succeeded(runs_of(t, base))]
+    if len(tasks) < 2 or len(both) == len(tasks) or not all(runs_of(t, c) for t in tasks for c in (new, base)):
+        return None
+    return (f"The average row's success columns average all {len(tasks)} tasks; its steps and steps saved average "
+            f"the {len(both)} on which both {base} and {new} have steps to success ({', '.join(both) or 'none'}), "
+            f"leaving out {', '.join(t for t in tasks if t not in both)} (a column without a successful episode "
+            f"there).")
 
 
 # ------------------------------------------------------------------------------------------------ findings.md
@@ -589,6 +635,9 @@ def check_findings_speed(root: str = ROOT, regime: str = "100 demos") -> int:
     tally = Tally(f"{FINDINGS}, speed {regime}")
     tally.table(one_table(sections(text), speed_title(regime, table), FINDINGS), SPEED_HEADER,
                 findings_expected()["speed"][regime, table])
+    cover = steps_cover_sentence(list(TASKS), lambda t, c: cpu_runs(t, c, _suffix(regime, t)), "HiPolicy", "w/o EG")
+    if cover is not None:  # a task without steps of one column: the sentence naming what the average covers
+        tally.text(text, cover)
     return tally.n
 
 
@@ -674,6 +723,7 @@ def grouped(tasks: list[str], cells_of, n_extra: int, extra=None, groups=None) -
 
 
 MW_LABELS = ("DP", "DP+HiPolicy", "DP3", "DP3+HiPolicy")
+MW_PAIRS = (("DP+HiPolicy", "DP"), ("DP3+HiPolicy", "DP3"))
 
 
 def _mw_column(task: str, label: str, steps: int) -> dict[int, dict]:
@@ -694,12 +744,31 @@ def metaworld_expected(tasks: tuple[str, ...], steps: int) -> dict:
 
     def main_cells(sub):
         out = [cell([success(_mw_column(t, c, steps)) for t in sub], RATE) for c in MW_LABELS]
-        for new, base in (("DP+HiPolicy", "DP"), ("DP3+HiPolicy", "DP3")):
+        for new, base in MW_PAIRS:
             e, _ = paired_est([_mw_column(t, new, steps) for t in sub], [_mw_column(t, base, steps) for t in sub])
             out.append(paired_text(e, len(sub)))
         return out
 
     main = grouped(ts, main_cells, 2, lambda t: [MW_GROUP.get(t.partition(":")[2], DASH), mw_demo_steps(t)])
+
+    def test_cells(sub):
+        """The protocol's two other tests of each paired cell: the exact sign-flip p over the (task, seed)
+        differences and the episode-level McNemar p over the (seed, episode) pairs of the cell's tasks."""
+        out = []
+        for new, base in MW_PAIRS:
+            a, b = [_mw_column(t, new, steps) for t in sub], [_mw_column(t, base, steps) for t in sub]
+            e, per_task = paired_est(a, b)
+            if e is None:
+                out += [DASH, DASH]
+                continue
+            pairs = []
+            for x, y in zip(a, b):
+                sx, sy = success(x), success(y)
+                pairs += [(sx[s] > 0, sy[s] > 0) for s in sorted(set(sx) & set(sy))]
+            out += [p_text(sign_flip_p(per_task)), p_text(mcnemar_p(pairs))]
+        return out
+
+    tests = grouped(ts, test_cells, 0)
 
     def pub(t, key):
         v = _published().get(t.partition(":")[2], {}).get(key)
@@ -716,7 +785,7 @@ def metaworld_expected(tasks: tuple[str, ...], steps: int) -> dict:
                                       for c in MW_LABELS], 2, lambda t: [pub(t, "dp_image"), pub(t, "dp3")])
     for row in metric:
         row += [gap(row[0], c, k) if ":" in row[0] else "" for c, k in (("DP", "dp_image"), ("DP3", "dp3"))]
-    out = {"main": main, "metric": metric,
+    out = {"main": main, "metric": metric, "tests": tests,
            "cost": cost_line([e for t in ts for c in MW_LABELS for e in _mw_column(t, c, steps).values()],
                              f"metaworld {ts[0].partition(':')[0]}")}
     targets = [t for t in ts if t.startswith("metaworld-target:")]
@@ -732,6 +801,7 @@ def metaworld_expected(tasks: tuple[str, ...], steps: int) -> dict:
         out["secondary"] = grouped(ts, secondary_cells, 0)
         order = [t for _, g in _mw_groups(ts) for t in g]
         speed = speed_rows(order, lambda t, c: _mw_column(t, c, steps), "DP+HiPolicy", "DP")
+        out["speed_cover"] = steps_cover_sentence(order, lambda t, c: _mw_column(t, c, steps), "DP+HiPolicy", "DP")
         with open(os.path.join(ROOT, "results", "metaworld", "diagnosis", "strided_experts.json")) as f:
             experts = json.load(f)["tasks"]
         for row in speed:
@@ -751,6 +821,11 @@ def metaworld_expected(tasks: tuple[str, ...], steps: int) -> dict:
 
 MW_MAIN_HEADER = ["Task", "DP3 group", "Demo steps", *MW_LABELS, "DP+HiPolicy − DP (points)",
                   "DP3+HiPolicy − DP3 (points)"]
+# the section the paired note points to (results/metaworld/PROTOCOL.md, Statistics: a sign-flip p over seeds and,
+# for information only, the episode-level exact McNemar p of each paired comparison)
+MW_TESTS = "Paired comparisons: sign-flip and McNemar p"
+MW_TESTS_HEADER = ["Task", *(f"{new} − {base}: {test}" for new, base in MW_PAIRS
+                             for test in ("sign-flip p", "episode-level McNemar p"))]
 MW_METRIC_HEADER = ["Task", "published DP (image)", "published DP3", *MW_LABELS,
                     "DP (state) − published DP (image) (points)", "DP3 − published DP3 (points)"]
 MW_SECONDARY = "Amendment 1, secondary: DP on absolute targets against DP on displacements"
@@ -767,12 +842,14 @@ def _mw_inputs(text: str) -> tuple[tuple[str, ...], int]:
 
 def check_metaworld_main(root: str = ROOT, table: str = "main") -> int:
     """The success table (every task row, group average and total: cells, intervals, p, verdicts, demo steps and
-    groups) and DP3's metric beside the published numbers (the gaps included)."""
+    groups), the section its paired note points to (each paired cell's exact sign-flip p and episode-level McNemar
+    p, row for row) and DP3's metric beside the published numbers (the gaps included)."""
     rel = METAWORLD_TABLES[table]
     text = read(root, rel)
     tasks, steps = _mw_inputs(text)
     want, tally, secs = metaworld_expected(tasks, steps), Tally(rel), sections(text)
     tally.table(one_table(secs, "Meta-World: success rate (%)", rel), MW_MAIN_HEADER, want["main"])
+    tally.table(one_table(secs, MW_TESTS, rel), MW_TESTS_HEADER, want["tests"], f" ({MW_TESTS})")
     tally.table(one_table(secs, "DP3's metric beside DP3's published numbers", rel), MW_METRIC_HEADER, want["metric"])
     tally.text(text, want["cost"])
     return tally.n
@@ -790,6 +867,8 @@ def check_metaworld_amendment(root: str = ROOT) -> int:
                 ["Task", "DP SR (%)", "DP+HiPolicy SR (%)", "Success cost (points)", "DP steps", "DP+HiPolicy steps",
                  "Steps saved (%)", "Expert chunked on targets: steps at stride 1 / 2 / 3",
                  "Demo steps / at the bound"], want["speed"])
+    if want["speed_cover"] is not None:  # the tasks the average's steps cover, named in the notes
+        tally.text(text, want["speed_cover"])
     return tally.n
 
 
@@ -1665,11 +1744,16 @@ def check_protocol_line(root: str, rel: str) -> int:
 DP3_BEST = 5  # DP3's metric: the mean of a seed's 5 best periodic evaluations (``dp3_metric`` above)
 
 
-def _paired_note(version: int) -> str:
+MCNEMAR_IN_FINDINGS = "The episode-level McNemar p is in findings.md."  # the MJX tables: findings.md has their rows
+
+
+def _paired_note(version: int, tests: str = MCNEMAR_IN_FINDINGS) -> str:
+    """The paired columns' note, ending with where the table's other tests are (``tests``; '' for a table with
+    none: the post hoc diagnosis)."""
     return (f"- Paired columns: per seed both columns have, the mean per-episode success difference on the shared "
             f"initial states; their mean with its {100 * LEVEL:.0f} % t interval over seeds and the seed-level t "
-            f"test's p (protocol v{version}); wins / loses when the interval excludes 0 (p < {1 - LEVEL:.2f}). The "
-            f"episode-level McNemar p is in findings.md.")
+            f"test's p (protocol v{version}); wins / loses when the interval excludes 0 (p < {1 - LEVEL:.2f})."
+            + (f" {tests}" if tests else ""))
 
 
 @functools.lru_cache(maxsize=None)
@@ -1734,7 +1818,11 @@ def notes_expected(rel: str) -> tuple[str, ...]:
                 f"{every}·seed+i, the same for every column), step limit {e0['max_steps']}, through the policy "
                 f"server (`metaworld_bridge.evaluate`, openpi's client); whole-chunk execution, HiPolicy "
                 f"entropy-guided at thresholds from a held-out demo. Training: {record['train']['num_steps']} steps "
-                f"on {demos - 1} demos (one more held out).", _paired_note(record["version"]),
+                f"on {demos - 1} demos (one more held out).",
+                _paired_note(record["version"], f"Each paired cell's sign-flip p over seeds and episode-level "
+                                                f"McNemar p are in the section *{MW_TESTS}* below."),
+                f"each task weighing the same, two-sided; {len(SEEDS)} seeds of one task cannot give less than "
+                f"{2 / 2 ** len(SEEDS):g}.",
                 f"- Point-cloud columns on no task: at {record['policy']['encoder']['num_points']} points a task's DP3 "
                 f"columns cost more than the {float(command_arg(pilot, '--budget-hours')[0]):g} CPU-hours leave "
                 f"(protocol budget rule 2, pilot entry); '–' where a column has no record.",
@@ -1747,8 +1835,16 @@ def notes_expected(rel: str) -> tuple[str, ...]:
         e = _mw_column("metaworld:basketball", "DP", _mw_inputs(read(ROOT, METAWORLD_TABLES["main"]))[1])[0]
         experts = _record(os.path.join(ROOT, "results", "metaworld", "diagnosis", "strided_experts.json"))
         c = experts["chunk_len"]
-        return (_paired_note(_record(RUN_OF[id(e)])["version"]),
-                f"on the same {len(e['success'])} initial states per seed as DP and DP+HiPolicy",
+        # the whole line: the diagnosis has no other tests, and the note says of none where they are
+        return (_paired_note(_record(RUN_OF[id(e)])["version"], "") + "\n",
+                # on absolute targets a segment's commanded targets end where the demo's did, not the hand, which
+                # the bridge moves at most Meta-World's 1 cm a step (results/metaworld/PROTOCOL.md, amendment 1)
+                "With absolute targets (the MJX tasks' joint targets) a segment's last commanded target is the demo's "
+                "at the end of that span (coverage 1 of the commands); the hand or joints reach it only as fast as "
+                "the env moves them.",
+                "Both are '–' on absolute hand targets (`metaworld-target:<task>`), where a segment's commanded "
+                "targets end where the demo's did, and the hand, moved at most 1 cm a step towards them, may lag "
+                "them.",
                 f"at each decision it runs {c}·s steps ahead in the simulator (then restored) and every s-th of its "
                 f"actions is executed, {c} per chunk;",
                 f"--strides {' '.join(map(str, experts['strides']))} --action-spaces "

@@ -497,6 +497,33 @@ def test_interval_summary_names_the_cells_the_two_intervals_split():
     assert tables.interval_summary(rows[1:]).endswith("the same verdict in 1 of 1 cells.")
 
 
+def test_speed_average_covers_the_same_tasks_in_both_steps_columns():
+    """A column that never succeeds on a task has no steps there: the average row's steps (both columns) and steps
+    saved cover the tasks where both have steps, its success columns every task, and the note names them. Task a:
+    base 60 steps, new 40; task b: base 100, new never succeeds. Over a alone: 60 and 40, saved 1/3; base over
+    both tasks would be 80 beside new's 40.
+    While a task has no record of a column yet, each column averages every task ('–' for that column)."""
+    def rec(task, column, seed, success, steps):
+        return {"task": task, "seed": seed, "column": column, "success_rate": float(success),
+                "success": [success] * 4, "steps": [steps] * 4}
+
+    records = [rec("a", "base", s, True, 60) for s in range(3)] + [rec("a", "new", s, True, 40) for s in range(3)]
+    records += [rec("b", "base", s, True, 100) for s in range(3)] + [rec("b", "new", s, False, 200) for s in range(3)]
+    args = None  # speed_rows reads the records alone
+    rows = tables.speed_rows(args, records, range(3), ["a", "b"], new="new", base="base")
+    assert rows[1][0] == "b" and rows[1][4:] == ["100.0", "–", "–"]
+    assert rows[2][0] == "**Average**" and rows[2][1:3] == ["100.0", "50.0"]  # success: both tasks
+    assert rows[2][4:6] == ["60.0", "40.0"] and rows[2][6].startswith("+33.3")  # steps: task a only, both columns
+    assert tables.steps_average_note(records, range(3), ["a", "b"], "new", "base") == (
+        "The average row's success columns average all 2 tasks; its steps and steps saved average the 1 on which "
+        "both base and new have steps to success (a), leaving out b (a column without a successful episode there).")
+    pending = [r for r in records if not (r["task"] == "b" and r["column"] == "new")]
+    # as before: each column's average over all tasks, '–' for the one still without a record on b
+    assert tables.speed_rows(args, pending, range(3), ["a", "b"], new="new", base="base")[2][4:] == ["80.0", "–", "–"]
+    assert tables.steps_average_note(pending, range(3), ["a", "b"], "new", "base") == ""
+    assert tables.steps_average_note(records, range(3), ["a"], "new", "base") == ""
+
+
 def test_paired_cell_is_seed_level():
     """4 seeds × 100 episodes, the new column succeeding once more on every seed: every seed's difference is +1
     point, so the interval uses the episode-level SE √(4 · 0.01/100)/4 = 0.005 with t(0.975, 3) = 3.1824 and

@@ -21,6 +21,7 @@ printed number of a copy of the tables in turn and shows that these checks fail 
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 import recompute as rc
@@ -29,9 +30,9 @@ import recompute as rc
 # loses rows or columns, or a check that stops comparing, falls below it)
 MINIMUM = {
     "findings": 114, "speed": 42, "budget": 25, "bootstrap": 287,
-    "metaworld main": 279, "metaworld amendment-1": 131, "amendment secondary": 73,
+    "metaworld main": 354, "metaworld amendment-1": 166, "amendment secondary": 75,
     "main": 81, "main_rlow": 57, "execution": 129, "execution_rlow": 129, "ablation_rlow": 65, "hparams_rlow": 45,
-    "thresholds_rlow": 63, "budget.md": 83, "README": 361, "diagnose displacements": 169, "diagnose targets": 78,
+    "thresholds_rlow": 63, "budget.md": 83, "README": 395, "diagnose displacements": 169, "diagnose targets": 78,
     "diagnosis note": 42, "diagnosis reading": 76, "protocol pilots": 32, "cpu pilot": 26, "metaworld pilot": 43, "campaign": 29, "metaworld plans": 42, "entropy": 32,
 }
 
@@ -70,8 +71,9 @@ def test_bootstrap_beside_the_t_interval_recomputes_from_the_records():
 @pytest.mark.parametrize("table", ["main", "amendment-1"])
 def test_metaworld_table_recomputes_from_the_records(table):
     """Every row of the Meta-World success table — task rows, each DP3 group's average and the total — with its
-    DP3 group, demo steps, both columns' success with intervals, the paired differences with p and verdict; and
-    DP3's metric beside the published numbers, with the averages and the gaps."""
+    DP3 group, demo steps, both columns' success with intervals, the paired differences with p and verdict; each
+    paired cell's exact sign-flip p and episode-level McNemar p (the section the paired note points to); and DP3's
+    metric beside the published numbers, with the averages and the gaps."""
     n = rc.check_metaworld_main(rc.ROOT, table)
     assert n >= MINIMUM[f"metaworld {table}"], f"{table}: {n} cells checked"
 
@@ -79,7 +81,8 @@ def test_metaworld_table_recomputes_from_the_records(table):
 def test_metaworld_target_secondary_tables_recompute_from_the_records():
     """Amendment 1's secondary comparison (DP on targets − DP on displacements, per task, per group, in total) and
     its steps table (success, the success cost, steps, steps saved with p and word, the chunked expert's steps and
-    the demos' steps at the bound)."""
+    the demos' steps at the bound; the average's steps over the tasks where both columns have steps, named in the
+    notes)."""
     n = rc.check_metaworld_amendment(rc.ROOT)
     assert n >= MINIMUM["amendment secondary"], f"amendment 1's secondary tables: {n} cells checked"
 
@@ -209,3 +212,95 @@ def test_one_edited_digit_fails_its_check(tmp_path):
     (tmp_path / "results" / "findings.md").write_text(edited)
     with pytest.raises(AssertionError, match="Steps saved"):
         rc.check_findings_speed(str(tmp_path), "Rlow")
+
+
+MW_MAIN, MW_TARGET = "results/metaworld/main.md", "results/metaworld/target/main.md"
+MW_DIAGNOSES = ("results/metaworld/diagnosis/diagnose.md", "results/metaworld/target/diagnosis/diagnose.md")
+
+
+def _copy_with(tmp_path, rel: str, old: str, new: str) -> str:
+    """A copy of the committed tables under ``tmp_path`` with ``old`` (which must be in ``rel``) replaced by
+    ``new`` in ``rel``; → the copy's root."""
+    for name in (MW_MAIN, MW_TARGET, *MW_DIAGNOSES, "results/findings.md"):
+        dest = tmp_path / name
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        dest.write_text(open(f"{rc.ROOT}/{name}").read())
+    text = (tmp_path / rel).read_text()
+    assert old in text, f"{rel} no longer holds {old!r}"
+    (tmp_path / rel).write_text(text.replace(old, new))
+    return str(tmp_path)
+
+
+def test_a_steps_average_over_other_tasks_than_its_partner_fails(tmp_path):
+    """Issue #58: the steps table's average row once gave DP's steps over 3 tasks beside DP+HiPolicy's over the 2
+    it succeeded on (83.3 against 84.6; over those 2 DP takes 90.9), and findings.md's w/o EG steps over 3 tasks
+    beside HiPolicy's over 4. Both numbers fail, and so does the table without the sentence naming the tasks the
+    average covers."""
+    root = _copy_with(tmp_path, MW_TARGET, "| 90.9 [89.1, 92.7] |", "| 83.3 [82.1, 84.5] |")
+    with pytest.raises(AssertionError, match="column 'DP steps'.*83.3"):
+        rc.check_metaworld_amendment(root)
+    sentence = "; its steps and steps saved average the 2 on which both DP and DP+HiPolicy have steps to success"
+    root = _copy_with(tmp_path, MW_TARGET, sentence, "")
+    with pytest.raises(AssertionError, match="its steps and steps saved average"):
+        rc.check_metaworld_amendment(root)
+    root = _copy_with(tmp_path, "results/findings.md", "| 50.9 [48.8, 52.9] |", "| 97.0 [27.2, 166.8] |")
+    with pytest.raises(AssertionError, match="column 'HiPolicy steps'.*97.0"):
+        rc.check_findings_speed(root, "100 demos")
+
+
+@pytest.mark.parametrize("rel", [MW_MAIN, MW_TARGET])
+def test_the_meta_world_tables_report_their_mcnemar_and_sign_flip_p(tmp_path, rel):
+    """Issue #58: the Meta-World tables said their episode-level McNemar p was in findings.md (which has no row of
+    theirs) and reported no sign-flip p, which their protocol promises. The old pointer fails, a table without the
+    section fails, and a wrong p in it fails (the Monte Carlo sign-flip p of 0 that 30 differences once gave)."""
+    table = "main" if rel == MW_MAIN else "amendment-1"
+    pointer = "Each paired cell's sign-flip p over seeds and episode-level McNemar p are in the section"
+    text = open(f"{rc.ROOT}/{rel}").read()
+    old_note = text[text.index(pointer):].split("\n")[0]
+    root = _copy_with(tmp_path, rel, old_note, "The episode-level McNemar p is in findings.md.")
+    with pytest.raises(AssertionError, match="Paired columns"):
+        rc.check_notes(root, rel)
+    section = text[text.index("## Paired comparisons: sign-flip and McNemar p"):text.index("## DP3's metric")]
+    root = _copy_with(tmp_path, rel, section, "")
+    with pytest.raises(AssertionError, match="no section 'Paired comparisons: sign-flip and McNemar p'"):
+        rc.check_metaworld_main(root, table)
+    if rel == MW_MAIN:
+        root = _copy_with(tmp_path, rel, "| **Total average** | 1.9e-09 | <1e-300 |",
+                          "| **Total average** | <1e-300 | <1e-300 |")
+        with pytest.raises(AssertionError, match="Total average.*sign-flip p"):
+            rc.check_metaworld_main(root, table)
+        root = _copy_with(tmp_path, rel, "| metaworld:basketball | 0.25 | 3.6e-12 |",
+                          "| metaworld:basketball | 0.25 | 3.7e-12 |")
+        with pytest.raises(AssertionError, match="McNemar p"):
+            rc.check_metaworld_main(root, table)
+
+
+@pytest.mark.parametrize("rel", MW_DIAGNOSES)
+def test_the_diagnosis_says_what_ends_where_the_demo_did(tmp_path, rel):
+    """Issue #58: on absolute targets the diagnosis said 'a segment ends where the demo did', true of its commanded
+    targets, not of the hand, which moves at most 1 cm a step towards them; and it pointed to findings.md for a
+    McNemar p it has none of. The old wording fails, and so does the old pointer."""
+    now = ("Both are '–' on absolute hand targets (`metaworld-target:<task>`), where a segment's commanded targets "
+           "end where the demo's did, and the hand, moved at most 1 cm a step towards them, may lag them.")
+    root = _copy_with(tmp_path, rel, now, "Both are '–' on absolute hand targets (`metaworld-target:<task>`), where "
+                                          "a segment ends where the demo did.")
+    with pytest.raises(AssertionError, match="commanded targets"):
+        rc.check_notes(root, rel)
+    end = "wins / loses when the interval excludes 0 (p < 0.05).\n"
+    root = _copy_with(tmp_path, rel, end, end[:-1] + " The episode-level McNemar p is in findings.md.\n")
+    with pytest.raises(AssertionError, match="Paired columns"):
+        rc.check_notes(root, rel)
+
+
+def test_the_recomputed_sign_flip_count_is_the_enumeration():
+    """The recomputation's exact sign-flip count past 16 differences (branch and bound) equals the count over
+    every sign pattern, on differences of mixed signs, with ties and zeros."""
+    rng = np.random.default_rng(0)
+    for n in (1, 5, 12, 14):
+        for v in (rng.normal(size=n), rng.integers(-2, 3, size=n).astype(float), np.abs(rng.normal(size=n))):
+            signs = 1 - 2 * ((np.arange(2 ** n)[:, None] >> np.arange(n)) & 1)
+            for threshold in (abs(v.sum()) - 1e-12, 0.5 * np.abs(v).sum(), 1e-3):
+                assert rc.sign_flip_count(v, threshold) == int(np.sum(np.abs(signs @ v) >= threshold)), (n, v)
+    # 30 differences of one sign (the Meta-World total): only all-plus and all-minus reach the observed mean
+    v = -0.5 - 0.01 * np.arange(30)
+    assert rc.sign_flip_count(v, abs(v.sum()) - 1e-12) == 2

@@ -116,6 +116,25 @@ def test_sign_flip_p_by_hand():
     assert stats.sign_flip_p([{0: [0.0], 1: [0.0]}]) == 1.0
 
 
+def test_sign_flip_p_is_exact_past_16_differences():
+    """The exact count (two halves' signed sums, a sorted search) is the share of all 2^n patterns: equal to the
+    enumeration of every pattern on mixed signs, ties and unequal task sizes, and exact where the enumeration would
+    take 2^30 patterns (10 tasks × 3 seeds of one sign: 2 / 2^30, where 100,000 random patterns would give 0)."""
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        tasks = [{s: rng.integers(-3, 4, size=5).astype(float) if rng.random() < 0.5 else rng.normal(size=5)
+                  for s in range(int(rng.integers(1, 5)))} for _ in range(int(rng.integers(1, 5)))]
+        values = [stats.seed_values(t) for t in tasks]
+        flat = np.concatenate(values)
+        weighted = flat * np.concatenate([np.full(v.size, 1 / (v.size * len(values))) for v in values])
+        signs = 1 - 2 * ((np.arange(2 ** flat.size)[:, None] >> np.arange(flat.size)) & 1)
+        every = float(np.mean(np.abs(signs @ weighted) >= abs(weighted.sum()) - 1e-12))
+        assert stats.sign_flip_p(tasks) == pytest.approx(every, abs=1e-15)
+    ten_tasks = [{s: [-0.5 - 0.01 * (3 * t + s)] for s in range(3)} for t in range(10)]
+    assert stats.sign_flip_p(ten_tasks) == 2 / 2 ** 30
+    assert stats.sign_flip_p(ten_tasks, max_exact=16) == 0.0  # the Monte Carlo p beyond max_exact: 0 of 100,000
+
+
 def test_verdict_follows_the_interval():
     assert stats.verdict(stats.Estimate(0.1, 0.02, 0.2)) == "wins"
     assert stats.verdict(stats.Estimate(-0.1, -0.2, -0.01)) == "loses"

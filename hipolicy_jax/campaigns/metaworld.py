@@ -25,10 +25,10 @@ from hipolicy_jax.campaigns.budgets import (BUDGETS, DP, METAWORLD_PILOT, METAWO
                                             METAWORLD_POINTCLOUD_TASKS, METAWORLD_STATE_TASKS, METAWORLD_STEPS)
 from hipolicy_jax.campaigns.campaign import (EXTERNAL_EVAL_SEED, Column, CostModel, Job, Periodic, damaged_lines,
                                              readme_section, update_readme, work_off)
-from hipolicy_jax.campaigns.report import markdown_table, spent_measured_text
-from hipolicy_jax.campaigns.tables import (PAIRED_NOTE, PaperArgs, table_record, campaign, demo_steps,
-                                           eval_episodes, grouped_rows, speed_rows, success_by_task_figure,
-                                           write_results)
+from hipolicy_jax.campaigns.report import markdown_table, p_text, paired, spent_measured_text
+from hipolicy_jax.campaigns.tables import (PAIRED_NOTE_CELLS, PaperArgs, table_record, campaign, demo_steps,
+                                           eval_episodes, grouped_rows, rows_by_group, speed_rows,
+                                           steps_average_note, success_by_task_figure, table_seeds, write_results)
 from hipolicy_jax.runs.store import read_json, write_json
 from hipolicy_jax.runs.lock import CAMPAIGN_LOCK_FILE, RunLock, RunLockedError
 
@@ -326,6 +326,38 @@ def published_numbers(path: str) -> dict[str, dict]:
     return read_json(path).get("tasks", {}) if os.path.exists(path) else {}
 
 
+PAIRED_TESTS = "Paired comparisons: sign-flip and McNemar p"  # the section of the main table's other two tests
+# the main table's paired cells: the seed-level t test's verdict there, its other two tests in PAIRED_TESTS
+MAIN_PAIRED_NOTE = (PAIRED_NOTE_CELLS + f" Each paired cell's sign-flip p over seeds and episode-level McNemar p are "
+                    f"in the section *{PAIRED_TESTS}* below.")
+
+
+def paired_tests_section(args: MainArgs, records: list[dict], pairs: list[tuple[str, str]],
+                         groups: list[tuple[str, list[str]]]) -> str:
+    """The protocol's other two tests of the main table's paired cells (``results/metaworld/PROTOCOL.md``,
+    Statistics), row for row: the exact sign-flip p over the (task, seed) differences (``stats.sign_flip_p``) and
+    the episode-level exact McNemar p (``stats.mcnemar_exact``), as ``report.paired`` computes them; '–' without a
+    pair."""
+    def cells(tasks: list[str]) -> list[str]:
+        out = []
+        for new, base in pairs:
+            c = paired(records, table_seeds(args), tasks, new, base)
+            out += ["–", "–"] if c is None else [p_text(c.sign_flip_p), p_text(c.mcnemar_p)]
+        return out
+
+    rows = rows_by_group(args, cells, groups=groups)
+    header = ["Task", *(f"{a} − {b}: {test}" for a, b in pairs for test in ("sign-flip p",
+                                                                          "episode-level McNemar p"))]
+    return (f"\n## {PAIRED_TESTS}\n\n"
+            "The same paired differences as the table's paired cells, whose verdict is the seed-level t test's, "
+            "with the protocol's two other tests. Sign-flip p: exact, over every pattern of signs of the (task, "
+            "seed) differences (each a seed's mean over its shared episodes), each task weighing the same, two-sided; "
+            f"{len(args.seeds)} seeds of one task cannot give less than {2 / 2 ** len(args.seeds):g}. Episode-level "
+            "McNemar p: exact, over the discordant (seed, episode) pairs of the rows' tasks, every episode counted "
+            "as independent whatever network it came from; for information only (protocol v2).\n\n"
+            + markdown_table(header, rows) + "\n")
+
+
 def main_table(args: MainArgs) -> str:
     """Run what is pending (unless ``--from-records``), then write ``<results>/main.md`` / ``.png`` / ``.json``."""
     camp = campaign(args)
@@ -382,13 +414,14 @@ def main_table(args: MainArgs) -> str:
     notes = [f"Success rate (%) over 100 episodes per seed (initial states {EXTERNAL_EVAL_SEED}+1000·seed+i, the same "
              f"for every column), step limit 200, through the policy server (`metaworld_bridge.evaluate`, openpi's "
              f"client); whole-chunk execution, HiPolicy entropy-guided at thresholds from a held-out demo. Training: "
-             f"{steps} steps on 10 demos (one more held out).", PAIRED_NOTE,
+             f"{steps} steps on 10 demos (one more held out).", MAIN_PAIRED_NOTE,
              "Point-cloud columns on " + (", ".join(args.resolved_pointcloud_tasks()) or "no task: at 512 points a "
                                           "task's DP3 columns cost more than the 40 CPU-hours leave")
              + " (protocol budget rule 2, pilot entry); '–' where a column has no record."]
     figure = success_by_task_figure(args, records, labels, "Meta-World")
     md = write_results(args, "Meta-World: success rate (%)", notes, table, records, figure)
     with open(md, "a") as f:
+        f.write(paired_tests_section(args, records, pairs, groups))
         f.write("\n## DP3's metric beside DP3's published numbers\n\n"
                 "Per seed, the mean of the 5 best of 10 periodic evaluations (each kept checkpoint, every T/10 "
                 "steps, on 20 episodes from initial states 2000000+1000·seed+i), as DP3 reports; mean over seeds with "
@@ -451,6 +484,7 @@ def amendment_section(args: MainArgs, records: list[dict], displaced: list[dict]
 
     for row in speed:  # per task only: the average row gets blanks
         row += striding_cells(row[0]) if row[0] in tasks else ["", ""]
+    covers = steps_average_note(records, args.seeds, tasks, "DP+HiPolicy", "DP")
     return ("\n## Amendment 1, secondary: DP on absolute targets against DP on displacements\n\n"
             "The same demos, seeds and initial states; DP (displacements) is the main table's DP "
             "(`results/metaworld/main.md`, its records in `results/runs/metaworld/metaworld_<task>/`). Paired as "
@@ -468,7 +502,7 @@ def amendment_section(args: MainArgs, records: list[dict], displaced: list[dict]
             "the env allows (1 cm per axis: Σ_t max_i |a[t, i]| over the xyz displacements, "
             "`data.windowing.steps_at_bound`; `<task>_coverage.json`; a step that pushes the target against the "
             "workspace's edge counts as a move, so where the hand works at that edge the bound is loose), a bound on "
-            "what any stride can save.\n\n"
+            "what any stride can save." + (" " + covers if covers else "") + "\n\n"
             + markdown_table(["Task", "DP SR (%)", "DP+HiPolicy SR (%)", "Success cost (points)", "DP steps",
                               "DP+HiPolicy steps", "Steps saved (%)", "Expert chunked on targets: steps at stride "
                               "1 / 2 / 3", "Demo steps / at the bound"], speed) + "\n")
@@ -609,10 +643,12 @@ def diagnose_table(args: DiagnoseArgs) -> str:
              "the segment stands for, while the gripper command follows the demo's schedule over that whole span. "
              "Coverage = the executed move projected on the demo's, median over the demos' windows "
              "(`data.windowing.delta_segment_coverage`): ~1/s means the segment lags its own gripper schedule by "
-             "a factor s. With the MJX tasks' absolute targets the segment ends where the demo did (coverage 1). "
+             "a factor s. With absolute targets (the MJX tasks' joint targets) a segment's last commanded target "
+             "is the demo's at the end of that span (coverage 1 of the commands); the hand or joints reach it only "
+             "as fast as the env moves them. "
              "'xyz at bound': share of the demos' xyz action entries at ±1, where no segment can move faster. "
-             "Both are '–' on absolute hand targets (`metaworld-target:<task>`), where a segment ends where the "
-             "demo did.",
+             "Both are '–' on absolute hand targets (`metaworld-target:<task>`), where a segment's commanded targets "
+             "end where the demo's did, and the hand, moved at most 1 cm a step towards them, may lag them.",
              "Expert chunked: the scripted expert as a chunking policy, closed loop: at each decision it runs "
              "8·s steps ahead in the simulator (then restored) and every s-th of its actions is executed, 8 per "
              "chunk; as Meta-World's displacements, or as absolute hand targets (each turned into the displacement "
@@ -623,7 +659,7 @@ def diagnose_table(args: DiagnoseArgs) -> str:
              f"same {eval_episodes(args)} initial states per seed as DP and DP+HiPolicy "
              "(`python -m experiments.evaluate --checkpoint RUN`, its guided pass the campaign's, reused). "
              f"{STRIDE1} − DP compares two networks at one execution; DP+HiPolicy − {STRIDE1} is one network, "
-             "guidance on vs off.", PAIRED_NOTE]
+             "guidance on vs off.", PAIRED_NOTE_CELLS]
     if len(args.tasks) > 1:
         for new, base in pairs:
             done = [t for t in args.tasks if all({r["seed"] for r in records if r["task"] == t and r["column"] == c}

@@ -13,6 +13,7 @@ import glob
 import os
 import shlex
 import time
+from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
@@ -103,6 +104,19 @@ class CampaignArgs(PaperArgs):
     budget_steps: tuple[int, ...] = (2000, 8000, 24000)
     # only these tables' evaluations (and tables), e.g. `--only budget`: two processes can work on two tables
     only: tuple[Literal["main", "ablation", "execution", "thresholds", "hparams", "budget"], ...] = ()
+    # where the runs are trained and evaluated (campaigns.cluster): inprocess = here, one after another; local /
+    # slurm = one submitit job a run (its training and all its evaluations) as local processes / a SLURM job array,
+    # waited for here, then the tables as in-process
+    executor: Literal["inprocess", "local", "slurm"] = "inprocess"
+    cluster_logs: str = ""  # the jobs' pickles and logs ('' = <runs>/cluster-logs)
+    cluster_time_min: int = 240  # a job's time limit (SLURM's --time; a job cut off is requeued and resumes)
+    cluster_retries: int = 2  # a job that ends without finishing its run is submitted again up to this many times
+    cluster_parallel: int = 0  # at most this many jobs at once (0: SLURM's array limit; local: one a core)
+    slurm_partition: str = ""  # '' = the cluster's default partition
+    slurm_cpus_per_task: int = 2  # the cost model's machine kind: 2 cores
+    slurm_mem_gb: float = 0.0  # 0 = the partition's default
+    slurm_account: str = ""  # '' = the user's default account
+    slurm_sbatch: tuple[str, ...] = ()  # more sbatch options as KEY=VALUE, e.g. qos=high gres=gpu:1 (the gpu budget)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -311,12 +325,6 @@ def grouped_rows(args: PaperArgs, records, columns: list[str], metric: str = "su
     followed by its average (when there are several), then the total. ``extra(task) -> list[str]`` adds leading
     cells; ``rel_to`` {column: baseline column} adds relative gains to average rows; ``paired`` [(new, base)] adds a
     paired-comparison cell per pair."""
-    rows = []
-    if groups is None:
-        groups = [("precise", [t for t in args.tasks if TASK_PRECISE[t]]),
-                  ("non-precise", [t for t in args.tasks if not TASK_PRECISE[t]])]
-    n_extra = len(extra(args.tasks[0])) if extra else 0
-
     def cells(tasks):
         out = []
         for c in columns:
@@ -327,6 +335,18 @@ def grouped_rows(args: PaperArgs, records, columns: list[str], metric: str = "su
             out.append(ci(records, metric, table_seeds(args), tasks, scale, column=c) + gain)
         return out + [paired_cell(records, table_seeds(args), tasks, new, base) for new, base in paired]
 
+    return rows_by_group(args, cells, extra, groups)
+
+
+def rows_by_group(args: PaperArgs, cells, extra=None, groups: list[tuple[str, list[str]]] | None = None
+                  ) -> list[list[str]]:
+    """``grouped_rows``'s layout with any cells: per task ``[task, *extra(task), *cells([task])]`` by group, each
+    group's average row ``cells(its tasks)`` when there are several groups, then the total ``cells(args.tasks)``."""
+    rows = []
+    if groups is None:
+        groups = [("precise", [t for t in args.tasks if TASK_PRECISE[t]]),
+                  ("non-precise", [t for t in args.tasks if not TASK_PRECISE[t]])]
+    n_extra = len(extra(args.tasks[0])) if extra else 0
     several = sum(bool(tasks) for _, tasks in groups) > 1
     for name, tasks in groups:
         for t in tasks:
@@ -367,10 +387,12 @@ def main_columns(args: MainArgs) -> list[Column]:
     return columns
 
 
-PAIRED_NOTE = ("Paired columns: per seed both columns have, the mean per-episode success difference on the shared "
-               "initial states; their mean with its 95 % t interval over seeds and the seed-level t test's p "
-               "(protocol v2); wins / loses when the interval excludes 0 (p < 0.05). The episode-level McNemar p is "
-               "in findings.md.")
+# the paired cells' note; a table whose own file does not report the episode-level McNemar p (the Meta-World tables:
+# findings.md has no rows of theirs) says where it is, or that it has none, after PAIRED_NOTE_CELLS
+PAIRED_NOTE_CELLS = ("Paired columns: per seed both columns have, the mean per-episode success difference on the "
+                     "shared initial states; their mean with its 95 % t interval over seeds and the seed-level t "
+                     "test's p (protocol v2); wins / loses when the interval excludes 0 (p < 0.05).")
+PAIRED_NOTE = PAIRED_NOTE_CELLS + " The episode-level McNemar p is in findings.md."
 
 
 def main_table(args: MainArgs) -> str:
@@ -799,16 +821,45 @@ def saved_groups(records: list[dict], seeds, task: str, new: str, base: str) -> 
     return groups
 
 
+def steps_tasks(records: list[dict], seeds, tasks, new: str, base: str) -> list[str]:
+    """The ``tasks`` on which both columns have steps to success (a successful episode on some seed): those a
+    speed table's average of steps covers, so that both steps columns average the same tasks. All ``tasks`` while
+    one of them has no record of a column yet (its average is none yet: '–')."""
+    def has_steps(task: str, column: str) -> bool:
+        return any(np.isfinite(v).any()
+                   for v in outcomes(records, "mean_steps_success", seeds, task=task, column=column).values())
+
+    if not all(outcomes(records, "success_rate", seeds, task=t, column=c) for t in tasks for c in (base, new)):
+        return list(tasks)
+    return [t for t in tasks if has_steps(t, base) and has_steps(t, new)]
+
+
+def steps_average_note(records: list[dict], seeds, tasks, new: str, base: str) -> str:
+    """What ``speed_rows``' average row covers when a task leaves its steps: '' when both columns have steps to
+    success on every task, else a sentence naming the tasks its steps and steps saved average."""
+    both = steps_tasks(records, seeds, tasks, new, base)
+    if len(tasks) < 2 or len(both) == len(tasks):
+        return ""
+    left = [t for t in tasks if t not in both]
+    return (f"The average row's success columns average all {len(tasks)} tasks; its steps and steps saved average "
+            f"the {len(both)} on which both {base} and {new} have steps to success ("
+            + (", ".join(both) or "none") + "), leaving out " + ", ".join(left)
+            + " (a column without a successful episode there).")
+
+
 def speed_rows(args: PaperArgs, records: list[dict], seeds, tasks, new: str = "HiPolicy",
                base: str = "w/o EG") -> list[list[str]]:
     """The paper's speed claim, per task and on average: success of ``base`` and ``new``, the success cost, steps
     to success of each, the steps ``new`` saves (%) with its interval over seeds. By default the same network
-    (HiPolicy vs w/o EG); with other columns, two networks per seed on the same initial states."""
+    (HiPolicy vs w/o EG); with other columns, two networks per seed on the same initial states. The average row's
+    steps and steps saved cover the tasks on which both columns have steps to success (``steps_tasks``; the caller
+    says which with ``steps_average_note``), its success columns every task."""
     rows = []
     for label, ts in [(t, [t]) for t in tasks] + ([("**Average**", list(tasks))] if len(tasks) > 1 else []):
         cost = paired(records, seeds, ts, new, base)
-        groups = [saved_groups(records, seeds, t, new, base) for t in ts]
-        saved = (stats.NAN if not all(groups) else stats.seed_mean(groups[0]) if len(ts) == 1
+        steps_ts = ts if len(ts) == 1 else steps_tasks(records, seeds, ts, new, base)
+        groups = [saved_groups(records, seeds, t, new, base) for t in steps_ts]
+        saved = (stats.NAN if not groups or not all(groups) else stats.seed_mean(groups[0]) if len(groups) == 1
                  else stats.average(groups))
         saved_text = "–" if not np.isfinite(saved.mean) else (
             f"{interval_text(saved, 100.0, signed=True)}, p={p_text(saved.p)}"
@@ -818,8 +869,8 @@ def speed_rows(args: PaperArgs, records: list[dict], seeds, tasks, new: str = "H
                      ci(records, "success_rate", seeds, ts, 100.0, column=base),
                      ci(records, "success_rate", seeds, ts, 100.0, column=new),
                      "–" if cost is None else f"{interval_text(cost.diff, 100.0, signed=True)} ({verdict_text(cost)})",
-                     ci(records, "mean_steps_success", seeds, ts, column=base),
-                     ci(records, "mean_steps_success", seeds, ts, column=new),
+                     *(ci(records, "mean_steps_success", seeds, steps_ts, column=c) if steps_ts else "–"
+                       for c in (base, new)),
                      saved_text])
     return rows
 
@@ -910,7 +961,8 @@ def findings_table(args: "CampaignArgs", tables: list[PaperArgs]) -> str | None:
                          leave_one_out(records, seeds, list(t.tasks), new, base),
                          "/".join(str(counts[v]) for v in VERDICTS)])
         if table_name(t) == "execution" and {"HiPolicy", "w/o EG"} <= labels:
-            speed.append((regime, results_name(t), speed_rows(t, records, seeds, list(t.tasks))))
+            speed.append((regime, results_name(t), speed_rows(t, records, seeds, list(t.tasks)),
+                          steps_average_note(records, seeds, list(t.tasks), "HiPolicy", "w/o EG")))
     if not rows:
         return None
     table = markdown_table(["Comparison", "Demos (table)", *args.tasks, "Average (seed-level t test)",
@@ -927,12 +979,13 @@ def findings_table(args: "CampaignArgs", tables: list[PaperArgs]) -> str | None:
              "the average without each task in turn. '–': no pair yet (see campaign_plan.md).", "",
              f"Over the {total} (comparison, task) cells: HiPolicy wins {tally['wins']}, ties {tally['ties']}, loses "
              f"{tally['loses']}.", "", table]
-    for regime, name, srows in speed:
+    for regime, name, srows, covers in speed:
         lines += ["", f"## Entropy-guided execution, same network: HiPolicy vs w/o EG, {regime} ({name})", "",
                   "One trained network per seed, executed with entropy guidance (HiPolicy) and always at stride 1 "
                   "(w/o EG) on the same initial states. The paper claims faster execution (fewer control steps) at "
                   "a small success cost. Steps saved: per seed, 100 · mean(w/o EG − HiPolicy) / mean(w/o EG) over "
-                  "the episodes both succeeded in; mean over seeds with its t interval and p.", "",
+                  "the episodes both succeeded in; mean over seeds with its t interval and p."
+                  + (" " + covers if covers else ""), "",
                   markdown_table(["Task", "w/o EG SR (%)", "HiPolicy SR (%)", "Success cost (points)",
                                   "w/o EG steps", "HiPolicy steps", "Steps saved (%)"], srows)]
     if budget_rows:
@@ -950,9 +1003,11 @@ def findings_table(args: "CampaignArgs", tables: list[PaperArgs]) -> str | None:
     return out
 
 
-def campaign_table(args: "CampaignArgs") -> str:
-    """Every evaluation of the protocol's tables under ONE progress bar (with its ETA), each kept in its run's record
-    as it finishes, then every table rebuilt from the records; → the path of the campaign's index."""
+def campaign_shard(args: "CampaignArgs") -> tuple[Campaign, list[PaperArgs], list[Job], set[str],
+                                                   Callable[[Job], str]]:
+    """The campaign's work in ``--shard K N``: (its ``Campaign``, the protocol's tables, the shard's jobs in
+    ``campaign_jobs``' order, the tasks skipped for want of a pilot choice, ``run_of``: a job's run dir). A bad
+    ``--shard`` or ``--until`` is a one-line ``ValueError`` before any work."""
     camp = campaign(args)
     tables = protocol_tables(args)
     jobs, skipped = campaign_jobs(args, tables)
@@ -964,11 +1019,24 @@ def campaign_table(args: "CampaignArgs") -> str:
     def run_of(job: Job) -> str:
         return camp.run_config(job.task, job.col, job.seed, dict(job.changes)).out_dir()
 
-    jobs = shard(jobs, k, n, run_of)
+    return camp, tables, shard(jobs, k, n, run_of), skipped, run_of
+
+
+def campaign_table(args: "CampaignArgs") -> str:
+    """Every evaluation of the protocol's tables under ONE progress bar (with its ETA), each kept in its run's record
+    as it finishes, then every table rebuilt from the records; → the path of the campaign's index. With
+    ``--executor local`` / ``slurm`` the runs are worked off by one job a run (``cluster.work_off``)."""
+    camp, tables, jobs, skipped, run_of = campaign_shard(args)
+    n = args.shard[1]
     costs = CostModel(args.records, args.runs).estimate(camp, jobs)
     if args.plan:
         return write_plan(args, costs)
-    work_off(camp, costs, run_of, until=args.until, progress=args.progress)
+    if args.executor == "inprocess" or args.from_records:
+        work_off(camp, costs, run_of, until=args.until, progress=args.progress)
+    else:
+        from hipolicy_jax.campaigns import cluster
+
+        cluster.work_off(args, costs, run_of)
     if n > 1 or not args.tables:  # the other shards may still run (or tables not asked for): what is left
         return write_plan(args, CostModel(args.records, args.runs).estimate(camp, jobs))
     paths, built = [], []

@@ -4,7 +4,8 @@ A second training on the same directory refuses with the owner's pid and host. A
 (a campaign's work on the run — training, evaluating, writing its record — holds ``<run>/.campaign.lock``, so two
 campaign processes never work on one run). A lock whose owner is gone — the same host and no live process with that
 pid (a run killed with ``kill -9``) — is reported and taken over. A lock from another host cannot be checked from
-here; it is refused, naming the file to delete if that run is gone.
+here; it is refused, naming the file to delete if that run is gone. Under SLURM the lock also names the job
+(``scheduler_job``), so that a later attempt of a killed cluster job can release what that attempt left.
 """
 
 from __future__ import annotations
@@ -16,6 +17,14 @@ import time
 
 LOCK_FILE = ".lock"
 CAMPAIGN_LOCK_FILE = ".campaign.lock"
+
+
+def scheduler_job() -> str | None:
+    """The SLURM job this process runs in, as ``sacct`` and submitit name it (``<array job>_<task>`` for a task of a
+    job array); None outside SLURM. A lock keeps it, so that a later attempt of a killed job, on another host, knows
+    the lock is that attempt's (``campaigns.cluster.release_stale_locks``)."""
+    array, task = os.environ.get("SLURM_ARRAY_JOB_ID"), os.environ.get("SLURM_ARRAY_TASK_ID")
+    return f"{array}_{task}" if array and task else os.environ.get("SLURM_JOB_ID") or None
 
 
 class RunLockedError(RuntimeError):
@@ -40,7 +49,8 @@ class RunLock:
                  remedy: str = "wait for it or pass another --out"):
         self.path = os.path.join(directory, name)
         self.activity, self.remedy = activity, remedy
-        self.owner = {"pid": os.getpid(), "host": socket.gethostname()}
+        job = scheduler_job()
+        self.owner = {"pid": os.getpid(), "host": socket.gethostname(), **({"job": job} if job else {})}
 
     def _create(self) -> bool:
         try:
@@ -91,4 +101,4 @@ class RunLock:
         self.release()
 
 
-__all__ = ["CAMPAIGN_LOCK_FILE", "LOCK_FILE", "RunLock", "RunLockedError"]
+__all__ = ["CAMPAIGN_LOCK_FILE", "LOCK_FILE", "RunLock", "RunLockedError", "scheduler_job"]
