@@ -929,6 +929,7 @@ TABLE_COLUMNS = {
     "Low": ("state", "cond-low", "chunk", True, SEEDS),
     "High": ("state", "cond-high", "chunk", True, SEEDS),
     "w/o Fusion": ("state", "nofusion", "chunk", True, SEEDS),
+    "Release fusion": ("state", "model-fusion_kind-release", "chunk", True, SEEDS),
     "w/o Hier.": ("state", "dp", "chunk", True, ALL_SEEDS),
 }
 
@@ -1021,7 +1022,8 @@ def check_execution(root: str = ROOT, name: str = "execution") -> int:
     return tally.n
 
 
-ABLATION_LABELS = ("Hier.", "Low", "High", "w/o Fusion", "w/o Hier.")
+ABLATION_LABELS = ("Hier.", "Low", "High", "w/o Fusion", "Release fusion", "w/o Hier.")
+ABLATION_PAIRS = (("Hier.", "w/o Hier."), ("Hier.", "Release fusion"))  # (new, base): the paired columns
 
 
 @functools.lru_cache(maxsize=None)
@@ -1030,8 +1032,9 @@ def ablation_expected(tasks: tuple[str, ...], regime: str) -> list[list[str]]:
         return table_runs(t, c, _sfx(regime, t))
 
     def cells(sub):
-        e, _ = paired_est([runs(t, "Hier.") for t in sub], [runs(t, "w/o Hier.") for t in sub])
-        return [cell([success(runs(t, c)) for t in sub], RATE) for c in ABLATION_LABELS] + [paired_text(e, len(sub))]
+        pairs = [paired_est([runs(t, new) for t in sub], [runs(t, base) for t in sub])[0] for new, base in ABLATION_PAIRS]
+        return ([cell([success(runs(t, c)) for t in sub], RATE) for c in ABLATION_LABELS]
+                + [paired_text(e, len(sub)) for e in pairs])
 
     return (grouped(list(tasks), cells, 0, None, precise_groups(tasks)),
             cost_line([e for t in tasks for c in ABLATION_LABELS for e in runs(t, c).values()], "ablation"))
@@ -1043,7 +1046,7 @@ def check_ablation(root: str = ROOT) -> int:
     tally = Tally(rel)
     rows, cost = ablation_expected(tuple(command_arg(text, "--tasks")), _regime(text))
     tally.table(one_table(sections(text), "Ablation: success rate (%)", rel),
-                ["Task", *ABLATION_LABELS, "Hier. − w/o Hier. (points)"], rows)
+                ["Task", *ABLATION_LABELS, *(f"{new} − {base} (points)" for new, base in ABLATION_PAIRS)], rows)
     tally.text(text, cost)
     return tally.n
 
@@ -1473,16 +1476,29 @@ def _how(s: dict) -> str:
             f"other jobs on those cores count too)")
 
 
-def campaign_cost_sentence() -> str:
+def campaign_cost_sentence(interim: bool = False) -> str:
     s = spent("cpu")
-    return (f"The campaign cost {(s['train_s'] + s['eval_s']) / 3600:.1f} CPU-hours of this 2-core machine kind, each "
+    return (f"The campaign{' so far' if interim else ''} cost {(s['train_s'] + s['eval_s']) / 3600:.1f} CPU-hours of this 2-core machine kind, each "
             f"run and evaluation counted once (the pilot's included): {s['train_s'] / 3600:.1f} h training "
             f"{s['runs']} runs, {s['eval_s'] / 3600:.1f} h making {s['evaluations']} evaluations {_how(s)}; a table's "
             f"Cost line counts the runs it shares with others too.")
 
 
-@functools.lru_cache(maxsize=None)
 def campaign_jobs() -> tuple[int, int]:
+    """(evaluations the protocol's tables plan, how many of them are recorded): ``campaign_job_table``'s counts."""
+    jobs = campaign_job_table()
+    return len(jobs), sum(jobs.values())
+
+
+def regime_text(suffix: str) -> str:
+    """A run suffix's regime as the campaign plan names it: '_d25' -> '25 demos', '_t8000' -> 'num steps 8000'."""
+    m = re.fullmatch(r"_(d|t)(\d+)", suffix)
+    assert m, f"no regime text for the suffix {suffix!r}"
+    return f"{m.group(2)} demos" if m.group(1) == "d" else f"num steps {m.group(2)}"
+
+
+@functools.lru_cache(maxsize=None)
+def campaign_job_table() -> dict:
     """(evaluations the protocol's tables plan, how many of them are recorded): one per (task, column, seed,
     regime), a column evaluated once however many tables show it (DP: main, execution, budget; DP+HiPolicy: main,
     budget); the single-frequency state columns on the baseline seeds too, the training-budget table on 0, 1, 2."""
@@ -1535,7 +1551,7 @@ def campaign_jobs() -> tuple[int, int]:
             sfx = "" if n == 2000 else f"_t{n}"
             for c in ("DP", "DP+HiPolicy"):
                 add(t, c, SEEDS, sfx, table_runs(t, c, sfx, SEEDS))
-    return len(jobs), sum(jobs.values())
+    return jobs
 
 
 CAMPAIGN_TABLES = ("findings.md", "main.md", "execution.md", "main_rlow.md", "execution_rlow.md", "ablation_rlow.md",
@@ -1549,17 +1565,44 @@ def check_campaign(root: str = ROOT) -> int:
     tally = Tally("results/campaign.md")
     text = read(root, os.path.join("results", "campaign.md"))
     planned, recorded = campaign_jobs()
-    tally.text(text, "\n\n" + campaign_cost_sentence() + "\n\n")
+    interim = recorded < planned  # a protocol amendment's runs under way: the index says so and how far it got
+    tally.text(text, "\n\n" + campaign_cost_sentence(interim) + "\n\n")
     tally.text(text, f"\n{planned} evaluations; tables:\n\n" + "\n".join(f"- [{t}]({t})" for t in CAMPAIGN_TABLES)
                + "\n")
     plan = read(root, os.path.join("results", "campaign_plan.md"))
-    assert recorded == planned, f"{planned - recorded} evaluations not recorded: the campaign's tables are interim"
-    tally.text(plan, f"\n{recorded} of {planned} evaluations recorded; left: about **0.0 CPU-hours** (")
-    tally.table(one_table(sections(plan), "Campaign plan", "results/campaign_plan.md"),
-                ["Regime", "Column", "Recorded", "Runs to train", "CPU-hours left"], [])
+    progress = f"Interim: {recorded} of {planned} evaluations recorded; what is left and its estimated cost: "
     readme = read(root, "README.md")
-    tally.text(readme, "<!-- campaign tables: written by `python -m experiments.paper campaign` from results/*.md -->"
-               "\n\n" + campaign_cost_sentence() + "\n\n")
+    marker = "<!-- campaign tables: written by `python -m experiments.paper campaign` from results/*.md -->\n\n"
+    if interim:
+        tally.text(text, "\n\n" + progress + "[campaign_plan.md](campaign_plan.md).")
+        tally.text(plan, f"\n{recorded} of {planned} evaluations recorded; left: about **")
+        head, printed = one_table(sections(plan), "Campaign plan", "results/campaign_plan.md")
+        assert head == ["Regime", "Column", "Recorded", "Runs to train", "CPU-hours left"], head
+        tally.n += len(head)
+        # the rows: per (regime, column) with evaluations left, recorded / planned, the runs to train (none of the
+        # pending runs has finished training where no runs directory holds them: a fresh clone) and the estimate
+        pending: dict[tuple[str, str], list[bool]] = {}
+        for (task, label, seed, suffix), done in campaign_job_table().items():
+            pending.setdefault((regime_text(suffix) if suffix else "", f"{label} (state)"), []).append(done)
+        want = {k: v for k, v in pending.items() if not all(v)}
+        assert [(r[0], r[1]) for r in printed] == list(want), f"results/campaign_plan.md: rows {printed}, the " \
+                                                              f"records leave {list(want)}"
+        for row, (key, done) in zip(printed, want.items()):
+            tally.eq(row[2], f"{sum(done)}/{len(done)}", f"plan row {key}, Recorded")
+            tally.eq(row[3], str(len(done) - sum(done)), f"plan row {key}, Runs to train")
+        total = re.search(r"left: about \*\*([\d.]+) CPU-hours\*\*", plan)
+        rows_h = sum(float(r[4]) for r in printed)  # each printed to 0.1: their sum within 0.05 per row
+        assert abs(rows_h - float(total.group(1))) <= 0.05 * (len(printed) - 1) + 1e-9, \
+            f"results/campaign_plan.md: its rows' CPU-hours sum to {rows_h:.1f}, its sentence says {total.group(1)}"
+        tally.n += len(printed)
+        tally.text(readme, marker + progress + "[campaign_plan.md](results/campaign_plan.md).\n\n"
+                   + campaign_cost_sentence(interim) + "\n\n")
+    else:
+        assert "Interim:" not in text, "results/campaign.md: every evaluation is recorded, but it says it is interim"
+        tally.text(plan, f"\n{recorded} of {planned} evaluations recorded; left: about **0.0 CPU-hours** (")
+        tally.table(one_table(sections(plan), "Campaign plan", "results/campaign_plan.md"),
+                    ["Regime", "Column", "Recorded", "Runs to train", "CPU-hours left"], [])
+        tally.text(readme, marker + campaign_cost_sentence() + "\n\n")
     return tally.n
 
 
