@@ -1788,6 +1788,10 @@ DP3_BEST = 5  # DP3's metric: the mean of a seed's 5 best periodic evaluations (
 
 
 MCNEMAR_IN_FINDINGS = "The episode-level McNemar p is in findings.md."  # the MJX tables: findings.md has their rows
+MCNEMAR_OF_ABLATION = ("The episode-level McNemar p of Hier. − w/o Hier. is in findings.md (DP+HiPolicy vs DP, Rlow: "
+                       "the same networks); Hier. − Release fusion has none.")
+MCNEMAR_OF_BUDGET = ("The episode-level McNemar p of the 2,000-step rows is in findings.md (DP+HiPolicy vs DP, 100 "
+                     "demos: the same networks); the longer trainings have none.")
 
 
 def _paired_note(version: int, tests: str = MCNEMAR_IN_FINDINGS) -> str:
@@ -1830,7 +1834,9 @@ def notes_expected(rel: str) -> tuple[str, ...]:
         return (f"- Success rate (%) with entropy-guided execution; M frequencies = strides "
                 f"{hip['policy']['chunk']['strides'][0]}..M (M={len(dp['policy']['chunk']['strides'])} is DP).",)
     if rel in ("results/ablation_rlow.md", "results/budget.md"):
-        out = [_paired_note(cpu_version)]
+        # findings.md has the McNemar p of the pairs that are its own rows' networks only
+        out = [_paired_note(cpu_version, MCNEMAR_OF_ABLATION if rel == "results/ablation_rlow.md" else
+                            MCNEMAR_OF_BUDGET)]
         if rel == "results/budget.md":
             out.append(f"- Does the gap between DP+HiPolicy and DP shrink, hold or grow with training? The same CPU "
                        f"network and batch as the budget, trained for more steps (the learning-rate schedule "

@@ -393,6 +393,10 @@ PAIRED_NOTE_CELLS = ("Paired columns: per seed both columns have, the mean per-e
                      "shared initial states; their mean with its 95 % t interval over seeds and the seed-level t "
                      "test's p (protocol v2); wins / loses when the interval excludes 0 (p < 0.05).")
 PAIRED_NOTE = PAIRED_NOTE_CELLS + " The episode-level McNemar p is in findings.md."
+ABLATION_MCNEMAR = ("The episode-level McNemar p of Hier. − w/o Hier. is in findings.md (DP+HiPolicy vs DP, Rlow: the "
+                    "same networks); Hier. − Release fusion has none.")
+BUDGET_MCNEMAR = ("The episode-level McNemar p of the 2,000-step rows is in findings.md (DP+HiPolicy vs DP, 100 demos: "
+                  "the same networks); the longer trainings have none.")
 
 
 def main_table(args: MainArgs) -> str:
@@ -435,7 +439,7 @@ def ablation_table(args: AblationArgs) -> str:
              "own frequency's observations (Hier.), or all on the lowest (Low) / highest (High); w/o Fusion: no "
              "CLS-token attention; Release fusion: the HiPolicy release's fusion, whose batch_first=False attention "
              "makes it a learned constant, out_proj(v_proj(cls)) (model.fusion_kind='release'); w/o Hier.: one "
-             "stride (DP).", PAIRED_NOTE]
+             "stride (DP).", PAIRED_NOTE_CELLS + " " + ABLATION_MCNEMAR]
 
     figure = success_by_task_figure(args, records, labels, "ablation")
     return write_results(args, "Ablation: success rate (%)", notes, table, records, figure)
@@ -555,7 +559,7 @@ def budget_table(args: BudgetArgs) -> str:
     notes = ["Does the gap between DP+HiPolicy and DP shrink, hold or grow with training? The same CPU network and "
              "batch as the budget, trained for more steps (the learning-rate schedule stretched to the step "
              "count); 100 demos; entropy-guided execution with per-run calibrated thresholds.",
-             "Steps: mean control steps of the successful episodes.", PAIRED_NOTE]
+             "Steps: mean control steps of the successful episodes.", PAIRED_NOTE_CELLS + " " + BUDGET_MCNEMAR]
 
     def figure(path):
         import matplotlib
