@@ -52,6 +52,7 @@ def inprocess(tmp_path_factory):
     return root, data, cache
 
 
+@pytest.mark.slow  # a smoke campaign through submitit's local executor: in CI's slow guards
 def test_local_executor_gives_the_in_process_records(inprocess, tmp_path, monkeypatch, capsys):
     """Two runs as two local submitit jobs: the same evaluations with the same per-episode outcomes as in-process,
     written by the jobs into the records; the submitter then builds the tables from them."""
@@ -72,6 +73,7 @@ def test_local_executor_gives_the_in_process_records(inprocess, tmp_path, monkey
     assert "[cluster]" not in capsys.readouterr().out
 
 
+@pytest.mark.slow  # a smoke campaign through submitit's local executor: in CI's slow guards
 def test_a_killed_job_is_submitted_again_and_resumes_from_its_checkpoint(inprocess, tmp_path, monkeypatch, capsys):
     """The DP run's job (``--shard 0 2``: that run alone) killed with SIGKILL once its step-6 checkpoint is written:
     the submitter submits it again, the new job takes over the dead job's locks, resumes the training from its
