@@ -59,8 +59,10 @@ class EvaluateArgs:
 
 def _line(name: str, s: dict) -> str:
     strides = ", ".join(f"{k[6:-5]}: {v:.2f}" for k, v in s.items() if k.startswith("stride") and k.endswith("_frac"))
-    return (f"  {name:<34} success {s['success_rate']:.2f}, mean steps {s['mean_steps']:.1f} "
-            f"(successful: {s['mean_steps_success']:.1f}); stride fractions {{{strides}}}")
+    counts = "".join(f", {s[k]:.1f} {what}" for k, what in (("mean_decisions", "decisions"),
+                                                          ("mean_actions", "actions")) if k in s)
+    return (f"  {name:<34} success {s['success_rate']:.2f}, mean control steps {s['mean_steps']:.1f} "
+            f"(successful: {s['mean_steps_success']:.1f}){counts}; stride fractions {{{strides}}}")
 
 
 def _timed_line(name: str, t: dict) -> str:

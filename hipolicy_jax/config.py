@@ -23,11 +23,28 @@ ConditionMode = Literal["hier", "low", "high"]
 PredictionType = Literal["epsilon", "sample"]
 Objective = Literal["diffusion", "flow"]
 ModelSize = Literal["cpu", "paper", "tiny"]
+ActionKind = Literal["absolute", "delta"]
+ACTION_KINDS: tuple[str, ...] = ("absolute", "delta")
 
 
 def _require(cond: bool, field: str, msg: str) -> None:
     if not cond:
         raise ValueError(f"{field}: {msg}")
+
+
+def check_action_kinds(kinds, field: str, action_dim: int | None = None) -> tuple[str, ...]:
+    """``kinds`` as a tuple of ``ACTION_KINDS`` strings, one per action dimension (``action_dim`` of them when
+    given); anything else raises a one-line ``ValueError`` naming ``field`` and what was expected."""
+    expected = "a sequence of 'absolute' / 'delta', one per action dimension"
+    _require(kinds is not None and not isinstance(kinds, str), field, f"expected {expected}, got {kinds!r}")
+    kinds = tuple(kinds)
+    bad = [k for k in kinds if k not in ACTION_KINDS]
+    _require(not bad, field,
+             f"each kind must be 'absolute' or 'delta', got {', '.join(map(repr, bad))} in {list(kinds)}")
+    _require(len(kinds) >= 1, field, f"expected {expected}, got none")
+    _require(action_dim is None or len(kinds) == action_dim, field,
+             f"expected {action_dim} kinds (one per action dimension), got {len(kinds)}: {list(kinds)}")
+    return kinds
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,6 +53,14 @@ class ChunkConfig:
 
     For a current index t and stride s: observation frames o[t-(L_h-1)s], ..., o[t-s], o[t] and action frames
     a[t+δ], a[t+δ+s], ..., a[t+δ+(L_c-1)s] with δ = ``action_offset``.
+
+    ``action_kinds`` says, per action dimension, what an action is: ``'absolute'`` (a target: a stride-s segment
+    samples every s-th recorded action) or ``'delta'`` (a displacement from where the robot is: a stride-s
+    segment's action i is the SUM of the s recorded deltas of its block, so it carries the block's motion;
+    ``data.windowing.segment_actions``). It changes what the network predicts, so it is part of the trained policy.
+    None (the default, and every run trained before it existed): not declared here; the policy's actions are all
+    absolute, and training (``runs.train``) takes the demo buffer's kinds instead, storing them here when any is a
+    delta.
     """
 
     strides: tuple[int, ...] = (1, 2, 3)
@@ -48,8 +73,13 @@ class ChunkConfig:
     # Actions executed per decision, from the first action for a frame >= t (Diffusion Policy's n_action_steps).
     # None: all of them, L_c - max(0, -δ), what HiPolicy and our defaults do.
     exec_len: int | None = None
+    # Per action dimension 'absolute' or 'delta' (the class docstring); None: every dimension absolute / the
+    # buffer's kinds at training.
+    action_kinds: tuple[ActionKind, ...] | None = None
 
     def __post_init__(self):
+        if self.action_kinds is not None:
+            object.__setattr__(self, "action_kinds", check_action_kinds(self.action_kinds, "chunk.action_kinds"))
         s = tuple(self.strides)
         _require(len(s) >= 1, "chunk.strides", "needs at least one stride")
         _require(all(isinstance(x, int) and x >= 1 for x in s), "chunk.strides",
@@ -103,6 +133,18 @@ class ChunkConfig:
     def action_span(self) -> int:
         """Base-rate action steps covered by the longest chunk: δ + (L_c-1)·max(s) + 1."""
         return self.action_offset + (self.chunk_len - 1) * max(self.strides) + 1
+
+    def kinds(self, action_dim: int) -> tuple[str, ...]:
+        """The ``action_dim`` kinds of the policy's actions: ``action_kinds`` (checked against ``action_dim``), or
+        every dimension ``'absolute'`` when None."""
+        if self.action_kinds is None:
+            return ("absolute",) * action_dim
+        return check_action_kinds(self.action_kinds, "chunk.action_kinds", action_dim)
+
+    @property
+    def has_delta(self) -> bool:
+        """Whether any action dimension is a delta (segments then hold summed deltas, per-segment statistics)."""
+        return self.action_kinds is not None and "delta" in self.action_kinds
 
 
 # Named U-Net sizes: (down_dims, kernel_size, step_embed_dim).
@@ -292,6 +334,7 @@ class FlowConfig:
 
 ExecutionKind = Literal["chunk", "aac", "te"]
 HandoverKind = Literal["naive", "inpaint"]
+SemanticsKind = Literal["rate", "waypoint"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -322,6 +365,17 @@ class InferenceConfig:
       d. 0 is synchronous execution. ``handover`` says how the new chunk meets the d committed actions: ``naive``
       switches to it as sampled; ``inpaint`` guides its first d actions (at every frequency) to the committed ones
       inside the one sampler, and the entropy is read over the free actions only.
+    - ``semantics``: what executing one action means (``evaluation.rollout``). ``rate``: one action per control
+      step, so a stride-s chunk covers s steps of demonstration time per control step. ``waypoint`` (the HiPolicy
+      release's): each action is a target the low-level controller is given until the hand is within
+      ``waypoint_tolerance`` metres of it, or for at most ``waypoint_steps`` × the decision's stride control steps;
+      the policy observes once per action (its history holds one frame per action, not per control step), and the
+      next action starts from where the robot is. Evaluations count decisions, actions and control steps (physical
+      time) under both.
+    - ``controller_speed``: a speed limit (m/s) of the MJX tasks' low-level controller: the hand's set-point moves
+      towards each target at most ``controller_speed`` · control_dt a control step (a straight-line planner, as a
+      robot's trajectory planner bounds joint speeds). None: the position servo is given the target at once (it
+      reaches a stride-3 target within one 0.1 s step; docs/execution.md).
     """
 
     num_samples: int = 16
@@ -336,6 +390,10 @@ class InferenceConfig:
     entropy_eps: float = 1e-6
     delay: int = 0  # inference delay d in control steps (asynchronous execution); 0 = synchronous
     handover: HandoverKind = "naive"  # how a delayed decision's chunk meets the committed actions
+    semantics: SemanticsKind = "rate"  # one action per control step | each action a target reached (waypoint)
+    waypoint_tolerance: float = 0.005  # m: the hand is at a waypoint within this distance (MJX tasks)
+    waypoint_steps: int = 3  # a waypoint gets at most this many control steps per unit of the decision's stride
+    controller_speed: float | None = None  # m/s limit of the MJX hand's set-point; None: no limit
 
     def __post_init__(self):
         _require(self.num_samples >= 1, "inference.num_samples", f"(N) must be >= 1, got {self.num_samples}")
@@ -361,6 +419,14 @@ class InferenceConfig:
         _require(self.delay >= 0, "inference.delay", f"(control steps) must be >= 0, got {self.delay}")
         _require(self.handover in ("naive", "inpaint"), "inference.handover",
                  f"must be 'naive' or 'inpaint', got {self.handover!r}")
+        _require(self.semantics in ("rate", "waypoint"), "inference.semantics",
+                 f"must be 'rate' or 'waypoint', got {self.semantics!r}")
+        _require(self.waypoint_tolerance > 0, "inference.waypoint_tolerance",
+                 f"(m) must be > 0, got {self.waypoint_tolerance}")
+        _require(self.waypoint_steps >= 1, "inference.waypoint_steps",
+                 f"(control steps per unit of stride) must be >= 1, got {self.waypoint_steps}")
+        _require(self.controller_speed is None or self.controller_speed > 0, "inference.controller_speed",
+                 f"(m/s) must be None (no limit) or > 0, got {self.controller_speed}")
         _require(self.delay == 0 or self.execution == "chunk", "inference.delay",
                  f"asynchronous execution runs whole chunks (--inference.execution chunk), got execution "
                  f"{self.execution!r} with delay {self.delay}")
@@ -378,6 +444,13 @@ class InferenceConfig:
         """``sampler_settings`` with ``samples_drawn``: what one decision of a ``num_freqs``-frequency policy
         compiles (the closed-loop policy, the policy server and the export)."""
         return dataclasses.replace(self.sampler_settings(), num_samples=self.samples_drawn(num_freqs))
+
+    def rollout_settings(self) -> "InferenceConfig":
+        """``sampler_settings`` plus how actions execute (``semantics``, the waypoint bounds, the controller's
+        speed): what a compiled closed-loop rollout depends on."""
+        return dataclasses.replace(self.sampler_settings(), semantics=self.semantics,
+                                   waypoint_tolerance=self.waypoint_tolerance, waypoint_steps=self.waypoint_steps,
+                                   controller_speed=self.controller_speed)
 
     def sampler_settings(self) -> "InferenceConfig":
         """Only what compiled samplers and rollouts depend on (N, sampler, steps, execution, entropy ε), the rest at

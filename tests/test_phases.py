@@ -15,7 +15,7 @@ def _result(start, stride, executed, valid, steps) -> EvalResult:
     return EvalResult(success_rate=jnp.zeros(()), mean_steps_success=jnp.zeros(()),
                       success=jnp.zeros(len(steps), bool), steps=jnp.asarray(steps), entropy=z,
                       stride=jnp.asarray(stride), valid=jnp.asarray(valid), start=jnp.asarray(start),
-                      executed=jnp.asarray(executed))
+                      executed=jnp.asarray(executed), actions=jnp.asarray(executed))
 
 
 def test_step_strides_follow_the_decisions():

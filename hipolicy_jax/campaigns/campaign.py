@@ -29,7 +29,7 @@ from hipolicy_jax.checkpoint import CheckpointDamaged, config_from_dict, config_
 from hipolicy_jax.config import InferenceConfig, PolicyConfig
 from hipolicy_jax.data.replay_buffer import collection_lock
 from hipolicy_jax.evaluation import calibration
-from hipolicy_jax.evaluation.evaluator import Evaluator, eval_summary
+from hipolicy_jax.evaluation.evaluator import Evaluator, result_record
 from hipolicy_jax.campaigns.budgets import BUDGETS, run_config
 from hipolicy_jax.campaigns.report import changes_text, cpu_s
 from hipolicy_jax.runs.calibrate import run_entropies
@@ -89,6 +89,10 @@ def evaluation_key(inference: InferenceConfig, col: Column, episodes: int, eval_
                 "te_decay": inference.te_decay if col.execution == "te" else None, "guided": col.guided,
                 "percentiles": None if col.percentiles is None else [float(p) for p in col.percentiles],
                 "episodes": episodes, "eval_seed": eval_seed}
+    if inference.semantics != "rate" or inference.controller_speed is not None:  # rate keys stay as they were
+        settings.update(semantics=inference.semantics, controller_speed=inference.controller_speed,
+                        waypoint_tolerance=inference.waypoint_tolerance if inference.semantics == "waypoint" else None,
+                        waypoint_steps=inference.waypoint_steps if inference.semantics == "waypoint" else None)
     return json.dumps(settings, sort_keys=True)
 
 
@@ -124,7 +128,7 @@ class Campaign:
                           eval_episodes=self.episodes, progress=self.progress, run_changes=run_changes)
 
     def _evaluator(self, run: Run, inference: InferenceConfig) -> Evaluator:
-        ident = (run.task, run.policy.cfg, run.action_dim, inference.sampler_settings())
+        ident = (run.task, run.policy.cfg, run.action_dim, inference.rollout_settings())
         if ident not in self._evaluators:
             self._evaluators[ident] = make_evaluator(run, inference)
         return self._evaluators[ident]
@@ -198,11 +202,8 @@ class Campaign:
                     t0, c0 = time.perf_counter(), cpu_seconds()
                     result = ev.evaluate(run.policy.params, run.policy.normalizer, self.episodes, eval_key(seed),
                                          thresholds, entropy_guided=col.guided)
-                    valid = np.asarray(result.valid)
-                    evaluation = {"settings": json.loads(key), **eval_summary(result), "thresholds": thresholds_json,
-                                  "success": [bool(x) for x in np.asarray(result.success)],
-                                  "steps": [int(x) for x in np.asarray(result.steps)],
-                                  "decisions": [int(x) for x in valid.sum(axis=1)], "eval_s": time.perf_counter() - t0,
+                    evaluation = {"settings": json.loads(key), **result_record(result), "thresholds": thresholds_json,
+                                  "eval_s": time.perf_counter() - t0,
                                   "eval_cpu_s": cpu_seconds() - c0, "cpu_cores": cpu_cores(),
                                   "rollout": ev.rollout_kind}
             evaluation["network"] = net
@@ -375,9 +376,11 @@ def training_key(policy: dict, batch_size: int) -> str:
     """What a training step's cost depends on: the policy config (network, encoder, objective) and the batch size;
     not the task, the number of demos nor the number of steps (a regime's ``_d25`` / ``_t8000`` runs share it).
     The policy dict is read back through ``PolicyConfig`` first, so a record written before a config field existed
-    keys as that field's default (the network it trained)."""
+    keys as that field's default (the network it trained). ``chunk.action_kinds`` is left out: what the actions
+    mean does not change a step's cost, and keys stay as they were before the field existed."""
     try:
         policy = config_to_dict(config_from_dict(PolicyConfig, policy))
+        policy["chunk"].pop("action_kinds", None)
     except (TypeError, ValueError, AttributeError):
         pass  # not a policy config this version reads: keyed as written
     return json.dumps({"policy": policy, "batch_size": batch_size}, sort_keys=True)

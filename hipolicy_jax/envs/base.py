@@ -172,11 +172,14 @@ class MjxEnv:
     randomised_bodies: tuple[str, ...] = ()
 
     def __init__(self, *, control_dt: float = 0.1, max_steps: int | None = None,
-                 obs_keys: tuple[str, ...] = ("state",), camera=None, expert_wobble: float = 0.0015):
+                 obs_keys: tuple[str, ...] = ("state",), camera=None, expert_wobble: float = 0.0015,
+                 controller_speed: float | None = None):
         """control_dt: seconds per control step (10–20 Hz advised). max_steps: episode step limit (task default when
         None). obs_keys: observations to compute, a subset of ('state', 'image', 'depth', 'point_cloud').
         camera: a ``camera.CameraConfig`` (default one when an image key is requested and None).
-        expert_wobble: amplitude (m) of the scripted expert's smooth hand wobble."""
+        expert_wobble: amplitude (m) of the scripted expert's smooth hand wobble.
+        controller_speed: speed limit (m/s) of the hand's set-point (``step``); None: the servo gets each target
+        at once."""
         valid = ("state", "image", "depth", "point_cloud")
         bad = [k for k in obs_keys if k not in valid]
         if bad or "state" not in obs_keys:
@@ -192,6 +195,9 @@ class MjxEnv:
         self.max_steps = int(max_steps if max_steps is not None else self.default_max_steps)
         self.obs_keys = tuple(obs_keys)
         self.expert_wobble = float(expert_wobble)
+        if controller_speed is not None and not controller_speed > 0:
+            raise ValueError(f"controller_speed: must be None (no limit) or > 0 m/s, got {controller_speed}")
+        self.controller_speed = None if controller_speed is None else float(controller_speed)
         self.camera = None
         if any(k in self.obs_keys for k in ("image", "depth", "point_cloud")):
             from hipolicy_jax.envs import camera as camera_lib
@@ -211,6 +217,12 @@ class MjxEnv:
     @property
     def action_dim(self) -> int:
         return ACTION_DIM
+
+    @property
+    def action_kinds(self) -> tuple[str, ...]:
+        """Per action dimension, ``'absolute'`` or ``'delta'`` (``ChunkConfig.action_kinds``): every MJX task's
+        action is an absolute target (hand xyz, gripper)."""
+        return ("absolute",) * self.action_dim
 
     @property
     def state_dim(self) -> int:
@@ -259,8 +271,17 @@ class MjxEnv:
                      step=jnp.zeros((), jnp.int32), info=info)
 
     def step(self, state: State, action: jax.Array) -> State:
-        """Advance one control step towards the absolute target ``action`` (4,) = (x, y, z, gripper)."""
+        """Advance one control step towards the absolute target ``action`` (4,) = (x, y, z, gripper).
+
+        With a ``controller_speed`` v the hand's set-point moves from the last one straight towards the target by
+        at most v · control_dt (the servo tracks the set-point within the step); otherwise it is the target."""
         ctrl = self.action_to_ctrl(action)
+        if self.controller_speed is not None:
+            last = state.data.ctrl[:3]
+            move = ctrl[:3] - last
+            limit = self.controller_speed * self.control_dt
+            scale = jnp.minimum(1.0, limit / jnp.maximum(jnp.linalg.norm(move), 1e-12))
+            ctrl = ctrl.at[:3].set(last + scale * move)
         data = state.data.replace(ctrl=ctrl)
         model = self.episode_model(state.info)
 
@@ -284,6 +305,14 @@ class MjxEnv:
         xyz = jnp.clip(action[:3], jnp.asarray(self.workspace_low), jnp.asarray(self.workspace_high))
         half = FINGER_OPEN * (1.0 - jnp.clip(action[3], 0.0, 1.0))
         return jnp.concatenate([xyz, jnp.stack([half, half])])
+
+    def reach_error(self, state: State, action: jax.Array) -> jax.Array:
+        """Distance (m) () from the hand (TCP) to the target of ``action`` (4,), clipped to the workspace: how far a
+        waypoint is from reached (``rollout``'s ``waypoint`` semantics). The gripper command is not part of it: a
+        grasp stops the fingers before the command's opening, so a closed gripper would never count as arrived."""
+        target = jnp.clip(jnp.asarray(action[:3], jnp.float32), jnp.asarray(self.workspace_low),
+                          jnp.asarray(self.workspace_high))
+        return jnp.linalg.norm(self.tcp(state.data) - target)
 
     def episode_model(self, info: dict) -> mjx.Model:
         """The MJX model of an episode: the shared model with this episode's randomised body placements."""

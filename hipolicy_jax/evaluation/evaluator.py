@@ -22,7 +22,7 @@ from hipolicy_jax.envs.base import MjxEnv
 from hipolicy_jax.evaluation import calibration
 from hipolicy_jax.evaluation.policy import PolicyArgs, make_policy_fn
 from hipolicy_jax.evaluation.execution import make_execution
-from hipolicy_jax.evaluation.rollout import EvalResult, Recording, Rollout
+from hipolicy_jax.evaluation.rollout import EvalResult, Recording, Rollout, Semantics
 from hipolicy_jax.models.policy_net import PolicyNet
 from hipolicy_jax.sampling import make_sampler
 
@@ -41,7 +41,8 @@ class Evaluator:
                  inference: InferenceConfig = InferenceConfig(), *, max_steps: int | None = None,
                  compact: bool = True):
         self.cfg, self.action_dim, self.inference = cfg, action_dim, inference
-        self.env = envs_lib.make_for_encoder(task, cfg.encoder) if isinstance(task, str) else task
+        speed = {} if inference.controller_speed is None else {"controller_speed": inference.controller_speed}
+        self.env = envs_lib.make_for_encoder(task, cfg.encoder, **speed) if isinstance(task, str) else task
         self.task = task if isinstance(task, str) else task.name
         if self.env.action_dim != action_dim:
             raise ValueError(f"action_dim: the policy predicts {action_dim}-dim actions, the {self.task} env takes "
@@ -52,7 +53,8 @@ class Evaluator:
         self._rollout = Rollout(self.env, policy_fn, init_fn, history_len=cfg.chunk.obs_span,
                                 chunk_len=execution.exec_len(cfg.chunk), max_steps=max_steps,
                                 min_actions=execution.min_actions(cfg.chunk), compact=compact,
-                                rows_per_episode=inference.samples_drawn(cfg.chunk.num_freqs))
+                                rows_per_episode=inference.samples_drawn(cfg.chunk.num_freqs),
+                                semantics=Semantics.of(inference))
         self._sampler = None
 
     @property
@@ -101,14 +103,16 @@ class Evaluator:
 
 
 def eval_summary(result: EvalResult) -> dict:
-    """JSON-able scalars of an ``EvalResult``: success rate, mean steps (all / successful), decisions per episode and
-    actions executed per decision, stride fractions, mean entropy."""
+    """JSON-able scalars of an ``EvalResult``: success rate, mean control steps (all / successful episodes), mean
+    decisions and actions per episode, actions executed per decision, stride fractions, mean entropy."""
     valid = np.asarray(result.valid)
     strides = np.asarray(result.stride)[valid]
+    actions = np.asarray(result.actions)
     out = {"success_rate": float(result.success_rate), "mean_steps_success": float(result.mean_steps_success),
            "mean_steps": float(np.mean(np.asarray(result.steps))),
            "mean_decisions": float(valid.sum(axis=1).mean()),
-           "mean_actions_per_decision": float(np.asarray(result.executed)[valid].mean()) if valid.any() else np.nan}
+           "mean_actions": float(np.where(valid, actions, 0).sum(axis=1).mean()),
+           "mean_actions_per_decision": float(actions[valid].mean()) if valid.any() else np.nan}
     for s in np.unique(strides):
         out[f"stride{int(s)}_frac"] = float(np.mean(strides == s))
     ent = np.asarray(result.entropy)[valid]
@@ -118,6 +122,9 @@ def eval_summary(result: EvalResult) -> dict:
 
 
 def result_record(result: EvalResult) -> dict:
-    """``eval_summary`` plus per-episode success and steps."""
+    """``eval_summary`` plus per episode: success, control steps (``steps``), decisions and actions executed."""
+    valid = np.asarray(result.valid)
     return {**eval_summary(result), "success": [bool(x) for x in np.asarray(result.success)],
-            "steps": [int(x) for x in np.asarray(result.steps)]}
+            "steps": [int(x) for x in np.asarray(result.steps)],
+            "decisions": [int(x) for x in valid.sum(axis=1)],
+            "actions": [int(x) for x in np.where(valid, np.asarray(result.actions), 0).sum(axis=1)]}

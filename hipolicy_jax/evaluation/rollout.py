@@ -7,9 +7,21 @@ Policy interface (written for ONE episode; ``evaluate`` vmaps it over episodes):
 
 ``obs_history`` maps every observation key to ``(history_len, ...)``: the last ``history_len`` control-rate
 observations, oldest first, padded at the episode start by repeating the first observation (as training windows
-are padded). After each decision the executor executes the first ``num_actions`` (default all L) actions, one per
-control step, and appends every new observation to the history, so a chunk predicted at stride s covers s·L steps
-of demonstration time in L control steps (the execution speed-up); ``stride`` and ``entropy`` are only recorded.
+are padded). After each decision the executor executes the first ``num_actions`` (default all L) actions and
+appends the observation after each to the history. What executing an action means is the *semantics*
+(``InferenceConfig.semantics``):
+
+- ``rate``: one control step per action, so a chunk predicted at stride s covers s·L steps of demonstration time in
+  L control steps (the execution speed-up is physical time).
+- ``waypoint`` (the HiPolicy release's): an action is a target the env's controller is given, control step after
+  control step, until ``env.reach_error`` is within ``waypoint_tolerance`` or ``waypoint_steps`` × the decision's
+  stride control steps have run (at least one); the history gets one frame per action (the observation where the
+  action ended), so the policy's windows count actions, not control steps, as the release's environment yields
+  one observation per action. With a controller that reaches every target in one step, the same episode as
+  ``rate``.
+
+``stride`` and ``entropy`` are only recorded (and the stride bounds a waypoint). Each decision's trace counts the
+actions it executed and the control steps they took (equal under ``rate``).
 How a policy's samples become these actions (the whole chunk, adaptive chunk sizes, temporal ensembling) is the
 execution strategy (``evaluation.execution``).
 
@@ -63,23 +75,25 @@ class PolicyOutput(NamedTuple):
 
 class Trace(NamedTuple):
     """Per-decision record of one episode, each (R,): entropy, stride, valid (the decision happened), start (the
-    control step it was taken at) and executed (how many of its actions ran). Entries where valid is False are
-    padding."""
+    control step it was taken at), executed (the control steps its actions took) and actions (how many of its
+    actions ran; = executed under ``rate`` semantics). Entries where valid is False are padding."""
 
     entropy: jax.Array
     stride: jax.Array
     valid: jax.Array
     start: jax.Array
     executed: jax.Array
+    actions: jax.Array
 
 
 class EvalResult(NamedTuple):
     """Evaluation of E episodes with R replans each.
 
     success_rate () float32, mean_steps_success () float32 (mean control steps of successful episodes; NaN if
-    none), success (E,) bool, steps (E,) int32 control steps executed, and per decision (E, R): entropy float32,
-    stride int32, valid bool (the episode was still running at that decision; entries where False are padding),
-    start int32 (the control step the decision was taken at), executed int32 (actions it executed).
+    none), success (E,) bool, steps (E,) int32 control steps executed (physical time), and per decision (E, R):
+    entropy float32, stride int32, valid bool (the episode was still running at that decision; entries where False
+    are padding), start int32 (the control step the decision was taken at), executed int32 (control steps it took),
+    actions int32 (actions it executed). Per episode: decisions = valid.sum(1), actions = actions.sum(1).
     """
 
     success_rate: jax.Array
@@ -91,6 +105,7 @@ class EvalResult(NamedTuple):
     valid: jax.Array
     start: jax.Array
     executed: jax.Array
+    actions: jax.Array
 
 
 class Recording(NamedTuple):
@@ -141,11 +156,36 @@ class EpisodeLoop(NamedTuple):
     finish: Callable[[tuple], tuple]
 
 
+class Semantics(NamedTuple):
+    """How an action executes (``InferenceConfig.semantics`` and its waypoint bounds; see the module docstring):
+    kind ``rate`` | ``waypoint``, tolerance (m) of ``env.reach_error``, steps: control steps per unit of stride a
+    waypoint may take."""
+
+    kind: str = "rate"
+    tolerance: float = 0.005
+    steps: int = 3
+
+    @classmethod
+    def of(cls, inference) -> "Semantics":
+        """The semantics an ``InferenceConfig`` names."""
+        return cls(inference.semantics, inference.waypoint_tolerance, inference.waypoint_steps)
+
+    def check(self) -> None:
+        if self.kind not in ("rate", "waypoint"):
+            raise ValueError(f"semantics: must be 'rate' or 'waypoint', got {self.kind!r}")
+        if not self.tolerance > 0 or self.steps < 1:
+            raise ValueError(f"semantics: waypoint tolerance must be > 0 and steps >= 1, got {self.tolerance}, "
+                             f"{self.steps}")
+
+
+RATE = Semantics()
+
+
 def make_episode_loop(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *, history_len: int,
                       chunk_len: int, max_steps: int | None = None, record: bool = False,
                       record_obs: tuple[str, ...] = (), min_actions: int | None = None,
-                      early_exit: bool = False) -> EpisodeLoop:
-    """The pieces of ``make_episode_fn``'s episode (same arguments). ``early_exit``: a decision's control steps run
+                      early_exit: bool = False, semantics: Semantics = RATE) -> EpisodeLoop:
+    """The pieces of ``make_episode_fn``'s episode (same arguments). ``early_exit``: a decision's actions run
     in a ``lax.while_loop`` that stops once the episode has executed the decision's ``num_actions`` actions (or is
     over), instead of a ``lax.scan`` over all ``chunk_len`` (masked past them); the same steps and states either
     way, fewer physics steps under ``vmap`` when every episode of the batch executes fewer than ``chunk_len``."""
@@ -153,6 +193,7 @@ def make_episode_loop(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn,
     if history_len < 1 or chunk_len < 1 or not 1 <= min_actions <= chunk_len:
         raise ValueError(f"history_len, chunk_len must be >= 1 and min_actions in [1, chunk_len], got {history_len}, "
                          f"{chunk_len}, {min_actions}")
+    semantics.check()
     missing = [k for k in record_obs if k not in env.obs_keys]
     if missing:
         raise ValueError(f"record_obs: {missing} not among the env's observations {env.obs_keys}")
@@ -173,7 +214,8 @@ def make_episode_loop(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn,
         pstate = init_fn(state.obs, k_init)
         trace = Trace(entropy=jnp.full((num_replans,), jnp.nan, jnp.float32),
                       stride=jnp.zeros((num_replans,), jnp.int32), valid=jnp.zeros((num_replans,), bool),
-                      start=jnp.zeros((num_replans,), jnp.int32), executed=jnp.zeros((num_replans,), jnp.int32))
+                      start=jnp.zeros((num_replans,), jnp.int32), executed=jnp.zeros((num_replans,), jnp.int32),
+                      actions=jnp.zeros((num_replans,), jnp.int32))
         # per control step snapshots, index = the step count after it (0: the reset); entries are rewritten with the
         # same frozen state once the episode is over
         frames = jax.tree.map(lambda x: jnp.zeros((limit + 1, *x.shape), x.dtype), snapshot(state)) if record else ()
@@ -191,16 +233,42 @@ def make_episode_loop(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn,
         n = chunk_len if out.num_actions is None else jnp.clip(out.num_actions, 1, chunk_len)
         start = state.step
 
-        def act(inner, i_action):
+        def record_step(frames, state):
+            return jax.tree.map(lambda buf, x: buf.at[state.step].set(x), frames, snapshot(state)) if record else ()
+
+        def act_rate(inner, i_action):
             i, action = i_action
-            state, history, frames = inner
+            state, history, frames, count = inner
             new_state = env.step(state, action)
             new_history = push_history(history, new_state.obs)
             keep = finished(state) | (i >= n)
             state, history = _select(keep, state, new_state), _select(keep, history, new_history)
-            if record:
-                frames = jax.tree.map(lambda buf, x: buf.at[state.step].set(x), frames, snapshot(state))
-            return (state, history, frames), None
+            frames = record_step(frames, state)
+            return (state, history, frames, count + ~keep), None
+
+        bound = semantics.steps * jnp.maximum(jnp.asarray(out.stride, jnp.int32), 1)
+
+        def act_waypoint(inner, i_action):
+            i, action = i_action
+            state, history, frames, count = inner
+            skip = finished(state) | (i >= n)
+
+            def more(c):
+                k, s = c[0], c[1]
+                arrived = (k > 0) & (env.reach_error(s, action) <= semantics.tolerance)
+                return ~skip & (k < bound) & ~finished(s) & ~arrived
+
+            def one(c):
+                k, s, fr = c
+                s = env.step(s, action)
+                return k + 1, s, record_step(fr, s)
+
+            _, state, frames = jax.lax.while_loop(more, one, (jnp.zeros((), jnp.int32), state, frames))
+            history = _select(skip, history, push_history(history, state.obs))
+            return (state, history, frames, count + ~skip), None
+
+        act = act_waypoint if semantics.kind == "waypoint" else act_rate
+        count = jnp.zeros((), jnp.int32)
 
         if early_exit:
             def more(inner):
@@ -211,15 +279,16 @@ def make_episode_loop(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn,
                 i = inner[0]
                 return (i + 1, *act(inner[1:], (i, out.actions[i]))[0])
 
-            _, state, history, frames = jax.lax.while_loop(more, one, (jnp.zeros((), jnp.int32), state, history,
-                                                                       frames))
+            _, state, history, frames, count = jax.lax.while_loop(
+                more, one, (jnp.zeros((), jnp.int32), state, history, frames, count))
         else:
-            (state, history, frames), _ = jax.lax.scan(act, (state, history, frames),
-                                                       (jnp.arange(chunk_len), out.actions))
+            (state, history, frames, count), _ = jax.lax.scan(act, (state, history, frames, count),
+                                                              (jnp.arange(chunk_len), out.actions))
         trace = Trace(entropy=trace.entropy.at[r].set(jnp.asarray(out.entropy, jnp.float32)),
                       stride=trace.stride.at[r].set(jnp.asarray(out.stride, jnp.int32)),
                       valid=trace.valid.at[r].set(True), start=trace.start.at[r].set(start),
-                      executed=trace.executed.at[r].set(state.step - start))
+                      executed=trace.executed.at[r].set(state.step - start),
+                      actions=trace.actions.at[r].set(count))
         return r + 1, state, history, pstate, trace, frames, k_policy, body_pos
 
     def finish(carry):
@@ -237,8 +306,8 @@ def make_episode_loop(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn,
 
 def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *, history_len: int,
                     chunk_len: int, max_steps: int | None = None, record: bool = False,
-                    record_obs: tuple[str, ...] = (),
-                    min_actions: int | None = None) -> Callable[[jax.Array, Any], tuple]:
+                    record_obs: tuple[str, ...] = (), min_actions: int | None = None,
+                    semantics: Semantics = RATE) -> Callable[[jax.Array, Any], tuple]:
     """The un-batched, un-jitted rollout of one episode: ``episode(key, policy_args) -> (final State, Trace)``, plus a
     ``Recording`` (qpos and the ``record_obs`` observations of every control step) as a third element when
     ``record``. ``Rollout`` vmaps and jits it; ``video`` jits it alone.
@@ -246,9 +315,11 @@ def make_episode_fn(env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *
     Every decision returns ``chunk_len`` actions of which the first ``num_actions`` (all when None) are executed,
     one per control step, before the next decision; ``min_actions`` (default ``chunk_len``) is the fewest a decision
     may execute and sizes the per-decision trace: R = ceil(limit / min_actions) entries. The decisions run in a
-    ``lax.while_loop`` that stops once the episode is over (under ``vmap``: once every episode is)."""
+    ``lax.while_loop`` that stops once the episode is over (under ``vmap``: once every episode is). ``semantics``:
+    how each action executes (``Semantics``; default ``rate``, one control step)."""
     loop = make_episode_loop(env, policy_fn, init_fn, history_len=history_len, chunk_len=chunk_len,
-                             max_steps=max_steps, record=record, record_obs=record_obs, min_actions=min_actions)
+                             max_steps=max_steps, record=record, record_obs=record_obs, min_actions=min_actions,
+                             semantics=semantics)
 
     def episode(key, policy_args):
         carry = jax.lax.while_loop(loop.running, lambda c: loop.decide(c, policy_args), loop.init(key))
@@ -350,17 +421,20 @@ class Rollout:
 
     With several (local) devices the episodes are sharded across them (when their count divides ``num_episodes``;
     otherwise everything runs on one device), ``policy_args`` is replicated and ``compact`` is not used.
+    ``semantics``: how each action executes (``Semantics``; default ``rate``).
     """
 
     def __init__(self, env: MjxEnv, policy_fn: StatefulPolicyFn, init_fn: InitFn, *, history_len: int,
                  chunk_len: int, max_steps: int | None = None, min_actions: int | None = None,
-                 compact: bool = False, block: int | None = None, rows_per_episode: int = 1):
+                 compact: bool = False, block: int | None = None, rows_per_episode: int = 1,
+                 semantics: Semantics = RATE):
         self.env, self.policy_fn, self.init_fn = env, policy_fn, init_fn
         self.history_len, self.chunk_len, self.max_steps = history_len, chunk_len, max_steps
         self.compact, self.block, self.rows_per_episode = compact, block, rows_per_episode
+        self.semantics = semantics
         self.traces = 0
         kwargs = dict(history_len=history_len, chunk_len=chunk_len, max_steps=max_steps, record=True,
-                      min_actions=min_actions)
+                      min_actions=min_actions, semantics=semantics)
         episode = make_episode_fn(env, policy_fn, init_fn, **kwargs)
 
         def rollout_episode(key, policy_args):
@@ -419,22 +493,23 @@ def score(state, trace: Trace) -> EvalResult:
 
 def rollout_episodes(policy_fn: StatefulPolicyFn, init_fn: InitFn, task: str | MjxEnv, num_episodes: int,
                      key: jax.Array, *, history_len: int, chunk_len: int, max_steps: int | None = None,
-                     policy_args=(), min_actions: int | None = None) -> tuple[EvalResult, Recording]:
+                     policy_args=(), min_actions: int | None = None,
+                     semantics: Semantics = RATE) -> tuple[EvalResult, Recording]:
     """One-off ``Rollout``: ``evaluate_stateful`` that also returns the batched ``Recording`` (qpos (E, T+1, nq),
     body_pos (E, n, 3)), e.g. to render a video of an evaluated episode. Compiles on every call: keep a ``Rollout``
     to evaluate repeatedly."""
     rollout = Rollout(_resolve(task), policy_fn, init_fn, history_len=history_len, chunk_len=chunk_len,
-                      max_steps=max_steps, min_actions=min_actions)
+                      max_steps=max_steps, min_actions=min_actions, semantics=semantics)
     return rollout(num_episodes, key, policy_args)
 
 
 def evaluate_stateful(policy_fn: StatefulPolicyFn, init_fn: InitFn, task: str | MjxEnv, num_episodes: int,
                       key: jax.Array, *, history_len: int, chunk_len: int, max_steps: int | None = None,
-                      policy_args=(), min_actions: int | None = None) -> EvalResult:
+                      policy_args=(), min_actions: int | None = None, semantics: Semantics = RATE) -> EvalResult:
     """``evaluate`` for a policy that carries its own state (see the module docstring)."""
     return rollout_episodes(policy_fn, init_fn, task, num_episodes, key, history_len=history_len,
                             chunk_len=chunk_len, max_steps=max_steps, policy_args=policy_args,
-                            min_actions=min_actions)[0]
+                            min_actions=min_actions, semantics=semantics)[0]
 
 
 def _no_state(obs, key):
