@@ -1,6 +1,9 @@
 """Calibrate entropy thresholds: ``python -m experiments.calibrate --checkpoint RUN_DIR``.
 
-``--inference.percentiles 10 70`` (the default for M = 3) sets the percentiles.
+``--inference.percentiles 10 70`` (the default for M = 3) sets the percentiles. ``--rule success --source
+rollouts`` instead keeps the most aggressive of a ladder of percentiles whose closed-loop success on calibration
+episodes is within ``--margin`` of stride 1's on the same episodes (every candidate's success and stride mix go into
+the record and are printed).
 
 Measures the trained policy's Gaussian action entropy (N samples per window) either on the held-out demos
 (``--source demos``: the validation episodes of the run's demo buffer, split as in training) or on its own
@@ -31,6 +34,8 @@ class CalibrateArgs:
     step: int | None = None  # checkpoint step (default: the latest)
     source: Literal["demos", "rollouts"] = "demos"
     inference: InferenceConfig = InferenceConfig()  # default: the run's inference.json
+    rule: Literal["percentiles", "success"] = "percentiles"  # success: the success-constrained rule (rollouts)
+    margin: float = 0.05  # rule success: the success-rate points a candidate may lose to stride 1
     episodes: int = 20  # rollouts: episodes
     seed: int | None = None  # default: the run's training seed
     out: str = ""  # default RUN_DIR/calibration.json (the histogram goes next to it as .png)
@@ -40,7 +45,16 @@ class CalibrateArgs:
 def main(args: CalibrateArgs) -> dict:
     run = load_run(args.checkpoint, args.step)
     record = calibrate_run(run, args.inference, args.source, episodes=args.episodes, seed=args.seed, out=args.out,
-                           bins=args.bins)
+                           bins=args.bins, rule=args.rule, margin=args.margin)
+    if args.rule == "success":
+        base = record["baseline"]
+        print(f"stride 1 on {args.episodes} calibration episodes: success {base['success_rate']:.2f}, "
+              f"{base['mean_steps']:.1f} control steps; candidates (percentiles: success, steps, intended -> "
+              f"achieved stride mix):")
+        for i, c in enumerate(record["candidates"]):
+            mix = ", ".join(f"{s}: {c['intended_mix'][s]:.2f}->{c['achieved_mix'][s]:.2f}" for s in c["intended_mix"])
+            mark = "  <- chosen" if i == record["chosen"] else ""
+            print(f"  {c['percentiles']}: {c['success_rate']:.2f}, {c['mean_steps']:.1f} steps, {{{mix}}}{mark}")
     inf = record["inference"]
     print(f"{run.task} @ step {run.policy.step}: {record['num_windows']} entropies from {args.source} "
           f"(N={inf['num_samples']}, sampler {inf['sampler']}, steps {inf['num_steps']})")

@@ -24,6 +24,7 @@ from hipolicy_jax.config import InferenceConfig
 
 from experiments import calibrate, evaluate, paper
 from hipolicy_jax import envs, jsonio
+from hipolicy_jax.evaluation import calibration as calibration_lib
 from hipolicy_jax.campaigns.budgets import BUDGETS, DP, variant_name
 from hipolicy_jax.checkpoint import config_to_dict
 from hipolicy_jax.campaigns.campaign import (Campaign, Column, CostModel, Deadline, Job, choose_low_regime,
@@ -261,6 +262,31 @@ def test_calibrate_rollouts(tiny, tmp_path):
     with pytest.raises(ValueError, match="inference.percentiles"):
         calibrate.main(calibrate.CalibrateArgs(checkpoint=run, inference=InferenceConfig(percentiles=(50.0,)),
                                                out=str(tmp_path / "x.json")))
+
+
+def test_calibrate_success_constrained_rule(tiny, tmp_path, capsys):
+    _, run = tiny
+    ladder_len = len(calibration_lib.percentile_ladder(3))
+    args = parse_with_run_inference(calibrate.CalibrateArgs, [
+        "--checkpoint", run, "--source", "rollouts", "--rule", "success", "--margin", "0.1", "--episodes", "3",
+        "--out", str(tmp_path / "c.json")])
+    record = calibrate.main(args)
+    saved = _load(tmp_path / "c.json")
+    cands, base = saved["candidates"], saved["baseline"]
+    assert len(cands) == ladder_len and saved["rule"] == "success" and saved["margin"] == 0.1
+    # every candidate: thresholds at its percentiles of the stride-1 rollouts' entropies, its mixes
+    for c in cands:
+        assert c["thresholds"] == list(calibration_lib.calibrate_thresholds(record["entropies"], 3, c["percentiles"]))
+        assert c["intended_mix"] == calibration_lib.intended_mix(c["percentiles"], (1, 2, 3))
+        assert math.isclose(sum(c["achieved_mix"].values()), 1.0, rel_tol=1e-9)
+    # the choice is the rule's on the recorded numbers, and the written thresholds are the chosen candidate's
+    want = calibration_lib.choose_success_constrained(cands, base["success_rate"], 0.1)
+    assert saved["chosen"] == want and saved["thresholds"] == cands[want]["thresholds"]
+    assert saved["percentiles"] == cands[want]["percentiles"]
+    assert saved["intended_mix"] == cands[want]["intended_mix"]
+    assert "<- chosen" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="rule: 'success' rolls the candidates out in closed loop"):
+        calibrate.main(calibrate.CalibrateArgs(checkpoint=run, rule="success", out=str(tmp_path / "x.json")))
 
 
 def test_paper_parsing_and_command_round_trip():

@@ -9,6 +9,10 @@ Everything about thresholds lives here, once:
   single-frequency policy has nothing to select and gets (−inf, +inf);
 - ``resolve_thresholds``: explicit thresholds (``InferenceConfig.thresholds``) over the run's calibration;
 - ``guidance_thresholds``: the (M+1,) float32 array a rollout traces (without entropy guidance: always stride 1);
+- ``intended_mix`` / ``achieved_mix``: the stride mix percentiles aim at, and the one a rollout executed;
+- ``percentile_ladder`` / ``choose_success_constrained``: the success-constrained rule: of a ladder of percentiles
+  from cautious to aggressive, the most aggressive whose closed-loop success on calibration episodes is within a
+  declared margin of the same episodes' success at stride 1 (``runs.calibrate``);
 - ``calibration_record`` / ``write_calibration`` / ``read_calibration``: ``calibration.json``.
 """
 
@@ -57,6 +61,52 @@ def calibrate_thresholds(entropies: np.ndarray, num_freqs: int,
     inner = np.percentile(h, p)
     inner = np.maximum.accumulate(inner + np.arange(len(inner)) * 1e-9)  # strictly ascending even for ties
     return (-math.inf, *(float(x) for x in inner), math.inf)
+
+
+def intended_mix(percentiles: Sequence[float], strides: Sequence[int]) -> dict[str, float]:
+    """The share of decisions per stride that thresholds at ``percentiles`` of an entropy distribution send there,
+    when the entropies met are that distribution (the lowest entropies to the highest frequency, stride 1, as
+    ``sampling.select_frequency``): {stride: fraction}. (10, 70) and strides (1, 2, 3): {1: 0.1, 2: 0.6, 3: 0.3}."""
+    edges = [0.0, *(float(p) / 100 for p in percentiles), 1.0]
+    if len(edges) != len(strides) + 1:
+        raise ValueError(f"percentiles: need M-1={len(strides) - 1} values for strides {list(strides)}, got "
+                         f"{list(percentiles)}")
+    return {str(s): round(edges[i + 1] - edges[i], 12) for i, s in enumerate(sorted(strides))}
+
+
+def achieved_mix(strides: np.ndarray, valid: np.ndarray, all_strides: Sequence[int]) -> dict[str, float]:
+    """The share of a rollout's decisions per stride: per-decision ``strides`` (E, R) where ``valid`` → {stride:
+    fraction} over ``all_strides`` (0 where none ran)."""
+    executed = np.asarray(strides)[np.asarray(valid, bool)]
+    n = max(executed.size, 1)
+    return {str(s): float(np.sum(executed == s)) / n for s in all_strides}
+
+
+LADDER_3 = ((90.0, 98.0), (70.0, 95.0), (50.0, 90.0), (30.0, 80.0), (10.0, 70.0), (5.0, 50.0), (2.0, 30.0))
+
+
+def percentile_ladder(num_freqs: int) -> tuple[tuple[float, ...], ...]:
+    """The default candidates of the success-constrained rule, from cautious to aggressive (M−1 percentiles each):
+    for M = 3 the share of decisions at stride 1 falls from 90 % to 2 % and at the largest stride grows from 2 % to
+    70 % (``LADDER_3``; the paper's (10, 70) is the fifth of seven); for other M, M−1 evenly spaced percentiles below
+    90, 70, 50, 30, 10 and 2."""
+    if num_freqs < 2:
+        return ()
+    if num_freqs == 3:
+        return LADDER_3
+    return tuple(tuple(float(x) for x in np.linspace(q, 99.0, num_freqs)[:-1]) for q in (90, 70, 50, 30, 10, 2))
+
+
+def choose_success_constrained(candidates: Sequence[dict], baseline_success: float, margin: float) -> int:
+    """The success-constrained rule over measured ``candidates`` (cautious to aggressive, each with a
+    ``success_rate``): the index of the most aggressive whose success is at least ``baseline_success − margin``;
+    0 (the most cautious) when none is. ``margin`` >= 0, in success-rate units (0.05 = 5 points)."""
+    if not 0 <= margin <= 1:
+        raise ValueError(f"margin: a success-rate difference in [0, 1], got {margin}")
+    if not candidates:
+        raise ValueError("candidates: the rule needs at least one measured candidate")
+    ok = [i for i, c in enumerate(candidates) if c["success_rate"] >= baseline_success - margin - 1e-12]
+    return ok[-1] if ok else 0
 
 
 def evenly_spaced(num_items: int, max_items: int) -> np.ndarray:

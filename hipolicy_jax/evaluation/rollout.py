@@ -565,3 +565,18 @@ def expert_policy(task: str | MjxEnv, chunk_len: int, stride: int = 1) -> tuple[
         return out, pstate._replace(t=pstate.t + stride * chunk_len)
 
     return policy_fn, init_fn
+
+
+def expert_counts(env: MjxEnv, stride: int, num_episodes: int, key: jax.Array, *, chunk_len: int = 8,
+                  semantics: Semantics = RATE) -> dict:
+    """The scripted expert chunked at ``stride`` (``expert_policy``) on ``num_episodes`` episodes under
+    ``semantics``: → {success_rate, mean control steps, actions and decisions per episode}. What a policy that
+    reproduced the demos exactly would do at that stride; ``experiments.expert_semantics`` tabulates it."""
+    policy_fn, init_fn = expert_policy(env, chunk_len, stride)
+    res = evaluate_stateful(policy_fn, init_fn, env, num_episodes, key, history_len=1, chunk_len=chunk_len,
+                            semantics=semantics)
+    valid = res.valid
+    return {"success_rate": float(res.success_rate), "mean_steps": float(jnp.mean(res.steps)),
+            "mean_actions": float(jnp.mean(jnp.where(valid, res.actions, 0).sum(axis=1))),
+            "mean_decisions": float(jnp.mean(valid.sum(axis=1)))}
+
