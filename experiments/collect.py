@@ -20,7 +20,6 @@ import jax
 from tqdm import tqdm
 
 from hipolicy_jax import envs
-from hipolicy_jax.data.replay_buffer import ReplayBuffer
 from hipolicy_jax.envs import camera as camera_lib
 from hipolicy_jax.envs import demos
 from hipolicy_jax.runs.cli import enable_compilation_cache
@@ -62,7 +61,7 @@ def main(argv=None) -> str:
         episodes = demos.collect_demos(args.task, args.episodes, jax.random.PRNGKey(args.seed),
                                        tuple(args.obs_keys), batch_size=args.batch_size, progress=bar.update,
                                        **overrides)
-    buf = ReplayBuffer.from_episodes(episodes)
+    buf = demos.demo_buffer(args.task, episodes)
     buf.save(path, overwrite=args.force)
     lengths = [len(e["action"]) for e in episodes]
     print(f"wrote {len(episodes)} episodes ({sum(lengths)} frames, length {min(lengths)}-{max(lengths)}, "

@@ -13,6 +13,9 @@ Policy's sampler does (observation history repeats the first frame, actions repe
 length trains. ``--min-length N`` drops (and lists in the printed summary) episodes shorter than N frames, as an
 explicit choice; any other problem stops the import with an error naming the file, key and expected vs actual. ``--dry-run``
 validates and prints the summary without writing. Refuses to overwrite DST unless ``--force``.
+``--action-kinds absolute|delta ...`` (one for every action dimension, or one per dimension) records whether the
+actions are absolute targets or deltas, where the source does not say (``hipolicy_jax.data.importers``): a delta
+dimension trained at stride s sums s deltas per action.
 Exit status: 0 on success, 1 on invalid data, 2 on bad arguments.
 """
 
@@ -23,7 +26,7 @@ import os
 import sys
 
 from hipolicy_jax import jsonio
-from hipolicy_jax.config import ChunkConfig
+from hipolicy_jax.config import ACTION_KINDS, ChunkConfig
 from hipolicy_jax.data.importers import FORMATS, ImportSummary, import_dataset, parse_key_map
 from hipolicy_jax.data.validation import DataValidationError
 
@@ -39,6 +42,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="drop (and report) episodes with fewer frames (default: %(default)s, keep every episode: "
                         "training pads episode edges; e.g. ChunkConfig().action_span = "
                         f"{ChunkConfig().action_span} keeps only episodes that fill the longest stride's chunk)")
+    p.add_argument("--action-kinds", nargs="+", default=None, choices=ACTION_KINDS, metavar="KIND",
+                   help="absolute or delta: one for every action dimension, or one per dimension (default: what "
+                        "the source says, else unknown)")
     p.add_argument("--dry-run", action="store_true", help="validate and print the summary without writing")
     p.add_argument("--force", action="store_true", help="overwrite an existing DST")
     p.add_argument("--summary-json", default=None, help="also write the summary as JSON to this path")
@@ -63,7 +69,8 @@ def main(argv=None) -> ImportSummary:
         print(f"error: {args.dst} exists; pass --force to overwrite it", file=sys.stderr)
         raise SystemExit(2)
     try:
-        buffer, summary = import_dataset(args.format, args.src, key_map=args.key_map, min_length=args.min_length)
+        buffer, summary = import_dataset(args.format, args.src, key_map=args.key_map, min_length=args.min_length,
+                                         action_kinds=args.action_kinds)
     except (DataValidationError, FileNotFoundError, ImportError) as e:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(1) from e

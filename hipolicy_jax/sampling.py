@@ -10,7 +10,9 @@
 3. draws N independent chains per observation: ``vmap`` over the N sample keys, ``lax.scan`` over the generative
    head's precomputed step table (``heads``: DDPM / DDIM for diffusion, Euler for flow matching), the head's
    update applied at every step;
-4. unnormalises the chunks → (B, N, M·L_c, A);
+4. unnormalises the chunks → (B, N, M·L_c, A) (``Normalizer.unnormalize``, per segment when the policy has delta
+   action dimensions: a stride-s segment's delta dimensions then hold summed deltas, s control steps of motion
+   per action, ``ChunkConfig.action_kinds``);
 5. computes the action entropy H = mean over frequencies, steps and action dims of 0.5·log(2πe·var + ε), with the
    ddof=1 variance over the N samples of the *unnormalised* actions (as the reference release);
 6. selects the execution frequency from ascending thresholds (lowest entropy → highest frequency) and returns
@@ -42,11 +44,12 @@ from hipolicy_jax.models.unet import lowp_kernels
 
 
 class SampleResult(NamedTuple):
-    chunks: jax.Array  # (B, N, M·L_c, A) unnormalised actions of all samples
+    chunks: jax.Array  # (B, N, M·L_c, A) unnormalised actions of all samples (delta dims at stride s: summed deltas)
     entropy: jax.Array  # (B,) action entropy; NaN when N == 1
     freq_index: jax.Array  # (B,) int32, index into chunk.strides (0 = highest frequency)
     stride: jax.Array  # (B,) int32, the selected stride
-    actions: jax.Array  # (B, L_c, A) sample 0's chunk at the selected stride
+    actions: jax.Array  # (B, L_c, A) sample 0's chunk at the selected stride, unnormalised; a delta dimension
+    # (``ChunkConfig.action_kinds``) holds the sum of ``stride`` control steps' displacements per action
 
 
 def action_entropy(chunks: jax.Array, eps: float = 1e-6, free: jax.Array | None = None) -> jax.Array:
@@ -153,6 +156,10 @@ def sample(params, normalizer, obs: dict[str, jax.Array], key: jax.Array, thresh
       prefix: (B, d, A) unnormalised actions already committed for the chunk's first d control steps, or None:
         inpainted into the first d steps of every frequency's segment where ``prefix_valid`` (B,) bool (default
         all); the entropy then reads the other steps.
+
+    Returns a ``SampleResult`` of unnormalised actions: absolute targets, and for delta action dimensions at
+    stride s the summed deltas of s control steps (``data.windowing.segment_actions``), normalised and
+    unnormalised with each segment's statistics (``Normalizer.normalize`` / ``unnormalize``, the one place).
     """
     head = make_head(cfg)
     n = inference.num_samples

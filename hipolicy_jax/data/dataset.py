@@ -7,6 +7,12 @@ normalises the low-dimensional arrays once, and serves batches by fancy indexing
     obs[key]   (B, M, L_h, ...)   float32 (images (B, M, L_h, H, W, 3) in [-1, 1])
     action     (B, M*L_c, A)      float32 in [-1, 1] over the fitted range
 
+Delta actions (``chunk.action_kinds`` with a ``'delta'``): the action chunks are built once, in data units, by
+``windowing.segment_actions`` (a stride-s action of a delta dimension is the sum of its block's s deltas, zero motion
+past the episode's end), and the normaliser fits the action per segment (``Normalizer.fit(segment_len=...)``),
+since summed deltas span about s times the range of single ones. With every dimension absolute (``action_kinds``
+None) the per-frame path below is unchanged, bit for bit.
+
 ``batch_indices(key, step, batch_size)`` is a pure function of its arguments: epoch ``step // steps_per_epoch``
 is a permutation drawn from ``fold_in(key, epoch)``, so a resumed run sees exactly the batches it would have seen.
 """
@@ -21,7 +27,7 @@ import numpy as np
 from hipolicy_jax.config import ChunkConfig
 from hipolicy_jax.data.normalizer import Normalizer, image_to_float
 from hipolicy_jax.data.replay_buffer import ReplayBuffer, expected_layout
-from hipolicy_jax.data.windowing import sample_indices
+from hipolicy_jax.data.windowing import check_recorded_kinds, sample_indices, segment_actions
 
 
 def split_episodes(num_episodes: int, val_ratio: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -50,7 +56,7 @@ class SequenceDataset:
       obs_keys: observation keys, e.g. ``("state",)``, ``("image", "state")``, ``("point_cloud", "state")``.
       episode_mask: ``(E,)`` bool, the episodes this dataset uses (default all).
       normalizer: use this instead of fitting one (e.g. the training set's, for validation); it must cover
-        ``action`` and the non-image observation keys.
+        ``action`` (per segment when the chunk has a delta dimension) and the non-image observation keys.
       max_action_pad: ``TrainConfig.max_action_pad`` (``windowing.sample_indices``): at most this many of a
         window's frames past its episode's last frame; None: no limit.
     """
@@ -85,14 +91,29 @@ class SequenceDataset:
                              f"{chunk.action_span}); raise it, or None for no limit")
         self.current, self.obs_idx, self.act_idx = current[keep], obs_idx[keep], act_idx[keep]
 
+        # The policy's action kinds; a buffer that records others is not this policy's data.
+        kinds = chunk.kinds(buffer.data["action"].shape[-1])
+        check_recorded_kinds(kinds, buffer.action_kinds, "the buffer")
+        # Delta dimensions: every sample's chunk (S, M*L_c, A) once, summed per block; fitted per segment.
+        chunks = (segment_actions(buffer.data["action"], buffer.episode_ends, self.current, chunk, kinds)
+                  if chunk.has_delta else None)
+
         # Normalise the low-dimensional arrays once; images stay uint8 and are converted per batch.
         low_dim = [k for k in ("action",) + self.obs_keys if buffer.data[k].dtype != np.uint8]
         if normalizer is None:
             frames = np.repeat(episode_mask, buffer.episode_lengths())
-            normalizer = Normalizer.fit({k: buffer.data[k][frames] for k in low_dim})
+            fitted = {k: buffer.data[k][frames] for k in low_dim if chunks is None or k != "action"}
+            normalizer = Normalizer.fit({**fitted, **({} if chunks is None else {"action": chunks})}, keys=low_dim,
+                                        segment_len=None if chunks is None else {"action": chunk.chunk_len})
+        if normalizer.per_segment("action") != chunk.has_delta:
+            have, need = [("per segment (M*L_c, A)" if x else "per feature (A,)")
+                          for x in (normalizer.per_segment("action"), chunk.has_delta)]
+            raise ValueError(f"normalizer: its action statistics are {have}, chunk.action_kinds="
+                             f"{chunk.action_kinds} needs them {need}; fit it on a dataset of this chunk")
         self.normalizer = normalizer
         self.arrays = {k: (normalizer.normalize(k, buffer.data[k]) if k in low_dim else buffer.data[k])
-                       for k in dict.fromkeys(("action",) + self.obs_keys)}
+                       for k in dict.fromkeys(self.obs_keys + (() if chunks is not None else ("action",)))}
+        self.action_chunks = None if chunks is None else normalizer.normalize("action", chunks)  # (S, M*L_c, A)
 
     def __len__(self) -> int:
         """S, the number of samples (current frames) in the selected episodes."""
@@ -126,7 +147,9 @@ class SequenceDataset:
         for key in self.obs_keys:
             frames = self.arrays[key][self.obs_idx[idx]]
             obs[key] = image_to_float(frames) if frames.dtype == np.uint8 else frames
-        return {"obs": obs, "action": self.arrays["action"][self.act_idx[idx]]}
+        action = (self.arrays["action"][self.act_idx[idx]] if self.action_chunks is None
+                  else self.action_chunks[idx])
+        return {"obs": obs, "action": action}
 
 
 def train_heldout_datasets(buffer: ReplayBuffer, chunk: ChunkConfig, obs_keys: Sequence[str], val_ratio: float,

@@ -24,6 +24,16 @@ the format's default action source when it does not name ``action``. Images (key
 converted to ``(T, H, W, 3) uint8``: floats in [0, 1] are scaled by 255, floats in [0, 255] rounded (the scale is
 decided by the first episode and then required of all), and the conversion is recorded in the summary.
 
+Action kinds (``ChunkConfig.action_kinds``: per action dimension ``'absolute'`` or ``'delta'``): every importer
+takes ``action_kinds=`` (``--action-kinds`` of ``experiments.import_data``; one kind for every dimension, or one per
+dimension) and reads them from the source where it says so: a zarr root attribute ``action_kinds`` (this project's
+and the Meta-World bridge's buffers), or robomimic's robosuite controller (``data`` attribute ``env_args``:
+``env_kwargs.controller_configs.control_delta``; true: every dimension a delta but the last, the gripper, absolute;
+false: all absolute) when the action is the default ``actions``. A flag that disagrees with the source is an error.
+The buffer records the kinds (root attribute ``action_kinds``); when neither says, it records none and the
+summary notes it: training then takes its task's kinds, and refuses when there is no task to say and a stride
+above 1 needs them (``data.windowing.resolve_chunk_kinds``).
+
 Nothing is dropped silently. Empty episodes, and episodes shorter than ``min_length`` frames when a caller asks for
 one (default 1: every episode is kept, since training pads episode edges as Diffusion Policy's sampler does), are
 dropped and listed with their reason in the ``ImportSummary``; every other
@@ -46,7 +56,8 @@ from collections.abc import Callable, Iterable, Sequence
 import numpy as np
 import zarr
 
-from hipolicy_jax.data.replay_buffer import ReplayBuffer
+from hipolicy_jax.config import check_action_kinds
+from hipolicy_jax.data.replay_buffer import ACTION_KINDS_ATTR, ReplayBuffer
 from hipolicy_jax.data.validation import (DataValidationError, check_episode_arrays, check_finite,
                                           check_same_frame_shape, check_source_episode_ends, describe,
                                           too_short_reason)
@@ -120,6 +131,7 @@ class ImportSummary:
       dropped: the dropped episodes with their reasons.
       keys: ``{key: (per-frame shape, dtype)}`` of the imported arrays.
       notes: conversions made and source keys not imported.
+      action_kinds: the actions' kinds the buffer records (module docstring), None when unknown.
     """
 
     source: str
@@ -130,6 +142,7 @@ class ImportSummary:
     dropped: tuple[EpisodeRecord, ...]
     keys: dict[str, tuple[tuple[int, ...], str]]
     notes: tuple[str, ...] = ()
+    action_kinds: tuple[str, ...] | None = None
 
     @property
     def num_frames(self) -> int:
@@ -144,7 +157,8 @@ class ImportSummary:
                 "kept": [{"name": r.name, "length": r.length} for r in self.kept],
                 "dropped": [{"name": r.name, "length": r.length, "reason": r.reason} for r in self.dropped],
                 "keys": {k: {"shape": list(s), "dtype": d} for k, (s, d) in self.keys.items()},
-                "notes": list(self.notes)}
+                "notes": list(self.notes),
+                "action_kinds": None if self.action_kinds is None else list(self.action_kinds)}
 
     def format(self) -> str:
         """Human-readable multi-line summary (printed by ``experiments.import_data``)."""
@@ -153,7 +167,9 @@ class ImportSummary:
                  f"key map: {format_key_map(self.key_map)}",
                  f"kept: {len(self.kept)} episodes, {self.num_frames} frames"
                  + (f", length {min(lengths)}-{max(lengths)}" if lengths else ""),
-                 f"dropped: {len(self.dropped)} episodes (min_length {self.min_length})"]
+                 f"dropped: {len(self.dropped)} episodes (min_length {self.min_length})",
+                 f"action kinds: {' '.join(self.action_kinds)}" if self.action_kinds is not None else
+                 "action kinds: unknown (the source does not say; pass --action-kinds to record them)"]
         lines += [f"  {r.name}: {r.reason}" for r in self.dropped]
         lines.append("keys:" if self.keys else "keys: none")
         lines += [f"  {k}: (T, {', '.join(map(str, s))}) {d}".replace("(T, )", "(T,)")
@@ -224,10 +240,30 @@ class _ImageConverter:
 EpisodeLoader = Callable[[], tuple[dict[str, np.ndarray], dict[str, str]]]
 
 
+def _settle_kinds(source: str, given: Sequence[str] | None, said: Sequence[str] | None,
+                  action_dim: int) -> tuple[str, ...] | None:
+    """The kinds an import records: ``given`` (the caller's; one kind stands for every dimension) and ``said`` (the
+    source's), which must agree where both are known; None when neither is."""
+    try:
+        if given is not None:
+            given = tuple([given] if isinstance(given, str) else given)
+            given = check_action_kinds(given * action_dim if len(given) == 1 else given, "action_kinds", action_dim)
+        if said is not None:
+            said = check_action_kinds(said, f"{source}: action_kinds", action_dim)
+    except ValueError as e:
+        raise DataValidationError(str(e)) from None
+    if given is not None and said is not None and given != said:
+        raise DataValidationError(f"{source}: says its action kinds are {list(said)}, action_kinds gives "
+                                  f"{list(given)}; expected them equal (leave --action-kinds out to take the source's)")
+    return given if given is not None else said
+
+
 def _assemble(source: str, fmt: str, key_map: KeyMap, min_length: int,
               episodes: Iterable[tuple[str, str, EpisodeLoader]], notes: Sequence[str],
-              images: _ImageConverter | None = None) -> tuple[ReplayBuffer, ImportSummary]:
+              images: _ImageConverter | None = None, action_kinds: Sequence[str] | None = None,
+              source_kinds: Sequence[str] | None = None) -> tuple[ReplayBuffer, ImportSummary]:
     """Validate, filter and concatenate episodes ``(name, where, loader)``; loaders return mapped arrays + sources.
+    ``action_kinds`` (the caller's) and ``source_kinds`` (the source's) settle the kinds recorded (``_settle_kinds``).
 
     Per episode: structural checks (ranks, lengths, image dtype) raise; empty / too-short episodes are dropped with
     their reason; kept episodes are checked for NaN / Inf and for frames of the same shape and dtype as the first
@@ -260,7 +296,10 @@ def _assemble(source: str, fmt: str, key_map: KeyMap, min_length: int,
     if not kept:
         raise DataValidationError(f"{source}: no episode left to import, all {len(dropped)} dropped\n"
                                   f"{summary.format()}")
-    return ReplayBuffer.from_episodes(arrays), summary
+    action_shape = reference["action"][0] if "action" in reference else ()
+    kinds = _settle_kinds(source, action_kinds, source_kinds, action_shape[-1] if len(action_shape) == 1 else 0)
+    summary = dataclasses.replace(summary, action_kinds=kinds)
+    return ReplayBuffer.from_episodes(arrays, action_kinds=kinds), summary
 
 
 def _check_sources_exist(key_map: KeyMap, available: Sequence[str], where: str) -> None:
@@ -278,12 +317,13 @@ def _unused_note(available: Iterable[str], key_map: KeyMap) -> list[str]:
 
 
 # ---------------------------------------------------------------------------------------------------- DP zarr
-def import_dp_zarr(src: str | os.PathLike, key_map: KeyMap | None = None,
-                   min_length: int = 1) -> tuple[ReplayBuffer, ImportSummary]:
+def import_dp_zarr(src: str | os.PathLike, key_map: KeyMap | None = None, min_length: int = 1,
+                   action_kinds: Sequence[str] | None = None) -> tuple[ReplayBuffer, ImportSummary]:
     """Import a Diffusion Policy zarr ReplayBuffer (directory or ``.zip``) -> ``(buffer, summary)``.
 
     Default key map: every ``data/<key>`` as is, ``img`` renamed ``image`` (DP's Push-T). Float images are
-    converted to uint8 (module docstring).
+    converted to uint8 (module docstring). Action kinds: ``action_kinds``, or the root attribute ``action_kinds``
+    when the action is imported from ``data/action`` alone.
     """
     src = os.fspath(src)
     if not os.path.exists(src):
@@ -327,7 +367,9 @@ def import_dp_zarr(src: str | os.PathLike, key_map: KeyMap | None = None,
     episodes = ((f"episode {i}", f"{src}: episode {i} (frames {int(starts[i])}:{int(starts[i] + lengths[i])})",
                  loader(i)) for i in range(len(lengths)))
     notes = (["img renamed image"] if key_map.get("image") == ("img",) else []) + _unused_note(available, key_map)
-    return _assemble(src, "dp-zarr", key_map, min_length, episodes, notes)
+    said = root.attrs.get(ACTION_KINDS_ATTR) if key_map["action"] == ("action",) else None
+    return _assemble(src, "dp-zarr", key_map, min_length, episodes, notes, action_kinds=action_kinds,
+                     source_kinds=said)
 
 
 # -------------------------------------------------------------------------------------------------- robomimic
@@ -339,12 +381,28 @@ def robomimic_demo_names(names: Iterable[str]) -> tuple[list[str], list[str]]:
     return sorted(demos, key=lambda n: int(n.split("_")[1])), sorted(other)
 
 
-def import_robomimic(src: str | os.PathLike, key_map: KeyMap | None = None,
-                     min_length: int = 1) -> tuple[ReplayBuffer, ImportSummary]:
+def robomimic_action_kinds(env_args, action_dim: int) -> tuple[str, ...] | None:
+    """The kinds robomimic's ``data`` attribute ``env_args`` (JSON) says its ``actions`` are: robosuite's
+    ``env_kwargs.controller_configs.control_delta`` true → every dimension a delta but the last (the gripper,
+    absolute), false → all absolute; None when it does not say (no such entry, or JSON that does not parse)."""
+    try:
+        args = json.loads(env_args) if isinstance(env_args, (str, bytes)) else env_args
+        delta = args["env_kwargs"]["controller_configs"]["control_delta"]
+    except (TypeError, KeyError, ValueError):
+        return None
+    if not isinstance(delta, bool):
+        return None
+    return ("delta",) * (action_dim - 1) + ("absolute",) if delta else ("absolute",) * action_dim
+
+
+def import_robomimic(src: str | os.PathLike, key_map: KeyMap | None = None, min_length: int = 1,
+                     action_kinds: Sequence[str] | None = None) -> tuple[ReplayBuffer, ImportSummary]:
     """Import a robomimic hdf5 file -> ``(buffer, summary)``.
 
     Source keys name ``data/demo_<i>/obs/<key>``, a dataset of the demo group itself (``actions``, ``rewards``,
     ``dones``, ``states``) or a path inside the demo group (``next_obs/<key>``). Demos are read in numeric order.
+    Action kinds: ``action_kinds``, or robosuite's ``control_delta`` (``robomimic_action_kinds``) when the action
+    is imported from ``actions`` alone.
     """
     h5py = _optional_import("h5py", "importing robomimic hdf5")
     src = os.fspath(src)
@@ -410,7 +468,11 @@ def import_robomimic(src: str | os.PathLike, key_map: KeyMap | None = None,
         episodes = ((d, f"{src}: data/{d}", loader(d)) for d in demos)
         notes = ([f"ignored non-demo entries in data/: {', '.join(other)}"] if other else []) \
             + _unused_note(available, key_map)
-        return _assemble(src, "robomimic", key_map, min_length, episodes, notes)
+        said = None
+        if key_map["action"] == ("actions",) and "actions" in first and first["actions"].ndim == 2:
+            said = robomimic_action_kinds(f["data"].attrs.get("env_args"), int(first["actions"].shape[1]))
+        return _assemble(src, "robomimic", key_map, min_length, episodes, notes, action_kinds=action_kinds,
+                         source_kinds=said)
 
 
 # ---------------------------------------------------------------------------------------------------- LeRobot
@@ -763,8 +825,8 @@ def _check_feature(arr: np.ndarray, feature: dict, where: str) -> np.ndarray:
     return arr
 
 
-def import_lerobot(src: str | os.PathLike, key_map: KeyMap | None = None,
-                   min_length: int = 1) -> tuple[ReplayBuffer, ImportSummary]:
+def import_lerobot(src: str | os.PathLike, key_map: KeyMap | None = None, min_length: int = 1,
+                   action_kinds: Sequence[str] | None = None) -> tuple[ReplayBuffer, ImportSummary]:
     """Import a local LeRobot dataset folder, v2.x or v3.0 (``codebase_version`` in ``meta/info.json``)
     -> ``(buffer, summary)``.
 
@@ -911,7 +973,7 @@ def import_lerobot(src: str | os.PathLike, key_map: KeyMap | None = None,
 
     episodes = ((f"episode {e.index}", e.where, loader(e)) for e in episodes_list)
     notes += _unused_note(available, key_map)
-    return _assemble(root, "lerobot", key_map, min_length, episodes, notes)
+    return _assemble(root, "lerobot", key_map, min_length, episodes, notes, action_kinds=action_kinds)
 
 
 def _check_image_shape(frames: np.ndarray, feature: dict, where: str) -> None:
@@ -928,8 +990,10 @@ IMPORTERS = {"dp-zarr": import_dp_zarr, "robomimic": import_robomimic, "lerobot"
 
 
 def import_dataset(fmt: str, src: str | os.PathLike, key_map: KeyMap | None = None,
-                   min_length: int = 1) -> tuple[ReplayBuffer, ImportSummary]:
-    """Import ``src`` in format ``fmt`` (one of ``FORMATS``) -> ``(buffer, summary)``."""
+                   min_length: int = 1, action_kinds: Sequence[str] | None = None
+                   ) -> tuple[ReplayBuffer, ImportSummary]:
+    """Import ``src`` in format ``fmt`` (one of ``FORMATS``) -> ``(buffer, summary)``; ``action_kinds``: the actions'
+    kinds where the source does not say (module docstring)."""
     if fmt not in IMPORTERS:
         raise ValueError(f"format: expected one of {list(FORMATS)}, got {fmt!r}")
-    return IMPORTERS[fmt](src, key_map=key_map, min_length=min_length)
+    return IMPORTERS[fmt](src, key_map=key_map, min_length=min_length, action_kinds=action_kinds)

@@ -12,6 +12,11 @@ Standard keys used by the project (others are allowed and only checked for consi
     image        (T, H, W, 3)      uint8
     point_cloud  (T, P, 3 or 6)    float (xyz or xyz+rgb)
 
+``action_kinds`` (optional): per action dimension ``'absolute'`` or ``'delta'`` (``ChunkConfig.action_kinds``),
+stored as the zarr root attribute ``action_kinds`` (a list of strings, one per action dimension; the Meta-World
+bridge writes the same attribute). None: not recorded (buffers written before it existed, imports whose source did
+not say); training then takes the task's kinds (``runs.train``).
+
 Damage on disk is caught where a buffer is read (``ReplayBuffer.load``) and reported as one ``BufferDamaged`` line
 naming the buffer, the part and what to do. ``save`` compresses each chunk with zstd's content checksum, writes every
 chunk (also one holding only the fill value) and stores each array's SHA-256 in its attributes, so in a buffer it
@@ -38,6 +43,7 @@ from collections.abc import Callable, Iterator, Sequence
 import numpy as np
 import zarr
 
+from hipolicy_jax.config import check_action_kinds
 from hipolicy_jax.jsonio import DamagedFileError, one_line
 from hipolicy_jax.jsonio import load as load_json
 
@@ -51,6 +57,7 @@ STANDARD_KEYS: dict[str, tuple[str, int, tuple[int, ...] | None, str | None]] = 
 
 _TARGET_CHUNK_BYTES = 4 * 2**20  # zarr chunks along time of about 4 MiB
 SHA256_ATTR = "sha256"  # an array's attribute: the SHA-256 of its dtype, shape and bytes when it was written
+ACTION_KINDS_ATTR = "action_kinds"  # the root's attribute: ["absolute" | "delta", ...], one per action dimension
 DAMAGED_HINT = "the buffer is damaged: delete it to collect it again (or import it again)"
 _METADATA_FILES = ("zarr.json", ".zgroup", ".zarray", ".zattrs", ".zmetadata")
 
@@ -140,10 +147,12 @@ def _check_array(key: str, arr: np.ndarray, num_frames: int, length_ref: str) ->
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class ReplayBuffer:
-    """In-memory episodes: ``data[key]`` ``(T, ...)`` time-first arrays and cumulative ``episode_ends`` ``(E,)``."""
+    """In-memory episodes: ``data[key]`` ``(T, ...)`` time-first arrays and cumulative ``episode_ends`` ``(E,)``;
+    ``action_kinds`` ``(A,)`` 'absolute' / 'delta' per action dimension, or None when not recorded."""
 
     data: dict[str, np.ndarray]
     episode_ends: np.ndarray
+    action_kinds: tuple[str, ...] | None = None
 
     def __post_init__(self):
         if not self.data:
@@ -156,6 +165,9 @@ class ReplayBuffer:
         for key, arr in data.items():
             _check_array(key, arr, num_frames, ref)
         ends = check_episode_ends(self.episode_ends, num_frames)
+        if self.action_kinds is not None:
+            dim = data["action"].shape[-1] if "action" in data and data["action"].ndim == 2 else None
+            object.__setattr__(self, "action_kinds", check_action_kinds(self.action_kinds, "action_kinds", dim))
         object.__setattr__(self, "data", data)
         object.__setattr__(self, "episode_ends", ends)
 
@@ -193,8 +205,10 @@ class ReplayBuffer:
 
     # ------------------------------------------------------------------------------------------ construction
     @classmethod
-    def from_episodes(cls, episodes: Sequence[dict[str, np.ndarray]]) -> ReplayBuffer:
-        """Concatenate episodes ``[{key: (T_i, ...)}, ...]``; every episode must hold the same keys."""
+    def from_episodes(cls, episodes: Sequence[dict[str, np.ndarray]],
+                      action_kinds: Sequence[str] | None = None) -> ReplayBuffer:
+        """Concatenate episodes ``[{key: (T_i, ...)}, ...]``; every episode must hold the same keys.
+        ``action_kinds``: the actions' kinds, one per dimension (None: not recorded)."""
         if len(episodes) == 0:
             raise ValueError("episodes: empty buffer (no episodes given)")
         keys = list(episodes[0])
@@ -210,12 +224,14 @@ class ReplayBuffer:
                                      f"(the length of {keys[0]!r})")
             lengths.append(n)
         data = {key: np.concatenate([np.asarray(ep[key]) for ep in episodes], axis=0) for key in keys}
-        return cls(data=data, episode_ends=np.cumsum(np.asarray(lengths, dtype=np.int64)))
+        return cls(data=data, episode_ends=np.cumsum(np.asarray(lengths, dtype=np.int64)),
+                   action_kinds=None if action_kinds is None else tuple(action_kinds))
 
     # ----------------------------------------------------------------------------------------------- storage
     def save(self, path: str | os.PathLike, overwrite: bool = False) -> None:
         """Write ``data/<key>`` (chunked along time) and ``meta/episode_ends`` to a zarr directory at ``path``, each
-        array with its SHA-256 and every chunk with zstd's checksum (what ``load`` checks)."""
+        array with its SHA-256 and every chunk with zstd's checksum (what ``load`` checks), and ``action_kinds``
+        (when recorded) as the root attribute ``action_kinds``."""
         path = os.fspath(path)
         if os.path.lexists(path):
             if not overwrite:
@@ -225,6 +241,8 @@ class ReplayBuffer:
             else:
                 os.remove(path)
         root = zarr.open_group(path, mode="w")
+        if self.action_kinds is not None:
+            root.attrs[ACTION_KINDS_ATTR] = list(self.action_kinds)
         data_group = root.create_group("data")
         for key, arr in self.data.items():
             frame_bytes = max(1, arr[:1].nbytes)
@@ -268,8 +286,9 @@ class ReplayBuffer:
         data = {key: _read_array(path, _metadata(path, hint, lambda k=key: data_group[k]), hint) for key in wanted}
         ends = _read_array(path, _metadata(path, hint, lambda: root["meta"]["episode_ends"]), hint,
                            never_fill=True)
+        kinds = _metadata(path, hint, lambda: root.attrs.get(ACTION_KINDS_ATTR))
         try:
-            return cls(data=data, episode_ends=ends)
+            return cls(data=data, episode_ends=ends, action_kinds=kinds)
         except ValueError as e:
             raise ValueError(f"{path}: {' '.join(str(e).split())}") from None
 

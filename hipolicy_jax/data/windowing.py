@@ -14,16 +14,23 @@ history before the first frame repeats it, actions after the last frame repeat i
 episode boundary and an episode of any length ≥ 1 trains (``TrainConfig.max_action_pad`` can limit the padding
 after the last frame, as Diffusion Policy's ``pad_after`` does). Evaluation (``gather_history``) reads the same
 windows out of the env's rolling base-rate history of ``chunk.obs_span`` frames, with jax arrays, under jit / vmap.
+
+Delta actions (``ChunkConfig.action_kinds``): the indices above are right for absolute targets. For a displacement
+dimension, taking every s-th recorded delta would leave a stride-s segment with one step of motion per action, a
+1/s of the demo's; ``segment_actions`` instead gives each stride-s action the sum of the s deltas of its block
+(zero motion for frames outside the episode), so a segment moves as far as the demo did over the same span.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
+from collections.abc import Sequence
 
 import jax.numpy as jnp
 import numpy as np
 
-from hipolicy_jax.config import ChunkConfig
+from hipolicy_jax.config import ChunkConfig, check_action_kinds
 from hipolicy_jax.data.replay_buffer import check_episode_ends
 
 
@@ -93,6 +100,103 @@ def sample_indices(episode_ends: np.ndarray, chunk: ChunkConfig,
     obs_idx = np.clip(current[:, None, None] + obs_offsets(chunk)[None], lo, hi)
     act_idx = np.clip(current[:, None, None] + action_offsets(chunk)[None], lo, hi)
     return current, obs_idx, act_idx.reshape(current.shape[0], chunk.horizon)
+
+
+def segment_actions(actions: np.ndarray, episode_ends: np.ndarray, current: np.ndarray, chunk: ChunkConfig,
+                    kinds: Sequence[str]) -> np.ndarray:
+    """Every sample's action chunk in data units, with delta dimensions carrying their blocks' motion.
+
+    For sample t, the segment at stride s and step i stands for the block of s base-rate frames
+    ``b = t+δ+i·s, ..., t+δ+i·s+s-1``:
+
+    - an ``'absolute'`` dimension holds ``a[b_0]``, its first frame clamped to the episode (``sample_indices``'s
+      action frames: past the last frame it repeats the last action, i.e. holds the final target);
+    - a ``'delta'`` dimension holds ``Σ_j a[b_j]`` over the block's frames that lie inside the episode: a frame
+      past the episode's last frame (or before its first, for δ < 0) contributes zero motion, since the robot holds
+      still there. So a block wholly past the end is 0 at every stride, stride 1 included (not a repeat of the
+      last delta), and a block cut by the end sums only its frames inside.
+
+    With every dimension absolute this equals ``actions[act_idx]`` of ``sample_indices`` exactly.
+
+    Args:
+      actions: ``(N, A)`` actions of every frame (ReplayBuffer layout).
+      episode_ends: ``(E,)`` cumulative episode ends.
+      current: ``(S,)`` current frames t (``sample_indices``'s, or any subset of them).
+      chunk: windowing configuration (strides, L_c, δ).
+      kinds: ``(A,)`` 'absolute' / 'delta' per action dimension (``ChunkConfig.kinds``).
+
+    Returns:
+      ``(S, M*L_c, A)`` in the actions' dtype, the M segments concatenated in segment order. Delta sums are taken
+      in float64 and rounded once.
+    """
+    actions = np.asarray(actions)
+    kinds = check_action_kinds(kinds, "kinds", actions.shape[-1])
+    ends = check_episode_ends(episode_ends, actions.shape[0])
+    current = np.asarray(current, np.int64)
+    episode = np.searchsorted(ends, current, side="right")
+    start = np.concatenate([[0], ends[:-1]])[episode][:, None, None]  # (S, 1, 1)
+    end = ends[episode][:, None, None]
+    first = current[:, None, None] + action_offsets(chunk)[None]  # (S, M, L_c) each block's first frame
+    out = actions[np.clip(first, start, end - 1).reshape(current.shape[0], chunk.horizon)]
+    delta = np.asarray([k == "delta" for k in kinds])
+    if delta.any():
+        moves = actions[:, delta].astype(np.float64)
+        sums = []
+        for m, s in enumerate(chunk.segment_strides):  # M strides; every sample at once
+            frames = first[:, m, :, None] + np.arange(s)  # (S, L_c, s)
+            inside = (frames >= start) & (frames < end)
+            sums.append((moves[np.clip(frames, 0, moves.shape[0] - 1)] * inside[..., None]).sum(axis=2))
+        out[..., delta] = np.concatenate(sums, axis=1).astype(out.dtype)
+    return out
+
+
+def check_recorded_kinds(kinds: Sequence[str], recorded: Sequence[str] | None, where: str,
+                         field: str = "chunk.action_kinds") -> None:
+    """Raise a one-line ``ValueError`` when ``recorded`` (a buffer's or a task's kinds; None: not recorded) differs
+    from ``kinds``, the policy's (``field``)."""
+    if recorded is not None and tuple(recorded) != tuple(kinds):
+        raise ValueError(f"{field}: the policy's actions are {list(kinds)}, but {where} has action_kinds "
+                         f"{list(recorded)}; pass --policy.chunk.action-kinds {' '.join(recorded)} (or leave it None: "
+                         f"training takes the demos')")
+
+
+def resolve_chunk_kinds(chunk: ChunkConfig, recorded: Sequence[str] | None, task_kinds: Sequence[str] | None,
+                        action_dim: int, where: str) -> ChunkConfig:
+    """The chunk a run trains with, its ``action_kinds`` settled against its demos (``runs.train``).
+
+    The demos' kinds are the buffer's ``recorded`` ones (its ``action_kinds`` attribute), else the task's
+    ``task_kinds`` (a task acts with one kind of action: MJX tasks absolute, an external suite its own), else
+    unknown. A chunk that declares its kinds keeps them, and they must equal the demos' where those are known. A
+    chunk that leaves them None takes the demos' kinds: stored in the returned chunk when any is a delta, left None
+    when all are absolute (so a run's identity is what it was before kinds existed); unknown kinds are refused when
+    a stride above 1 needs them (at stride 1 alone both kinds sample every recorded action; only the padding past
+    an episode's end differs, and unknown kinds train as absolute, as before kinds existed).
+
+    Args:
+      chunk: the run's windowing; recorded / task_kinds: ``(A,)`` kinds or None; action_dim: A; where: the
+        buffer, for messages.
+
+    Raises:
+      ValueError: one line naming the field, when kinds disagree, have the wrong length, or are needed and unknown.
+    """
+    if recorded is not None:
+        recorded = check_action_kinds(recorded, f"{where}: action_kinds", action_dim)
+    if recorded is not None and task_kinds is not None and tuple(task_kinds) != recorded:
+        raise ValueError(f"data: {where} has action_kinds {list(recorded)}, its task acts with {list(task_kinds)}; "
+                         f"these demos are not of this task (pass its --task or other --data)")
+    known = recorded if recorded is not None else task_kinds
+    if chunk.action_kinds is not None:
+        check_recorded_kinds(chunk.kinds(action_dim), known, where if recorded is not None else "its task")
+        return chunk
+    if known is None:
+        if max(chunk.strides) > 1:
+            raise ValueError(f"chunk.action_kinds: {where} does not record whether its {action_dim} action dimensions "
+                             f"are 'absolute' or 'delta' (its action_kinds attribute), and strides {chunk.strides} "
+                             f"need it; pass --policy.chunk.action-kinds (one per dimension) or import the data "
+                             f"with --action-kinds")
+        return chunk
+    known = check_action_kinds(known, "action_kinds", action_dim)
+    return dataclasses.replace(chunk, action_kinds=known) if "delta" in known else chunk
 
 
 def history_window_indices(chunk: ChunkConfig) -> np.ndarray:

@@ -64,10 +64,14 @@ def prefix_len(inference: InferenceConfig) -> int:
 def make_metadata(*, task: str, cfg, action_dim: int, inference: InferenceConfig, thresholds,
                   thresholds_source: str, obs: dict[str, dict], extra: dict | None = None) -> dict:
     """The manifest a backend and an export describe themselves with (strict JSON). ``num_samples``: the chunks a
-    decision draws (``InferenceConfig.samples_drawn``: 1 for a single-frequency policy without AAC)."""
+    decision draws (``InferenceConfig.samples_drawn``: 1 for a single-frequency policy without AAC).
+    ``action_kinds``: per action dimension ``'absolute'`` or ``'delta'`` (``ChunkConfig.kinds``; all absolute for a
+    policy that declares none): a delta dimension of an action executed at stride s is the SUM of s control steps'
+    displacements (``data.windowing.segment_actions``), to apply relative to where the robot is."""
     n = inference.samples_drawn(cfg.chunk.num_freqs)
     return {"format": "hipolicy_jax.policy", "version": MANIFEST_VERSION, "task": task,
-            "obs": obs, "action_dim": int(action_dim), "strides": list(cfg.chunk.strides),
+            "obs": obs, "action_dim": int(action_dim), "action_kinds": list(cfg.chunk.kinds(int(action_dim))),
+            "strides": list(cfg.chunk.strides),
             "chunk_len": int(cfg.chunk.chunk_len), "obs_horizon": int(cfg.chunk.obs_horizon),
             "obs_span": int(cfg.chunk.obs_span), "horizon": int(cfg.chunk.horizon),
             "num_samples": n, "objective": cfg.objective, "policy": config_to_dict(cfg),

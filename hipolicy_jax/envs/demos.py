@@ -3,7 +3,8 @@
 ``expert_rollout(task, batch_size, ...)`` returns a jitted function ``keys (B, 2) -> ExpertTrace`` that runs the
 expert of every episode for the task's full step limit; finished episodes are frozen. ``collect_demos`` compiles it
 once and splits the traces at each episode's end (its success step) into time-first numpy episodes ready for
-``ReplayBuffer.from_episodes``. ``load_or_collect`` reuses a demo buffer on disk (checked against the policy's
+``ReplayBuffer.from_episodes`` (``demo_buffer`` makes the buffer, recording the task's ``action_kinds``, all
+absolute for the MJX tasks). ``load_or_collect`` reuses a demo buffer on disk (checked against the policy's
 encoder) or collects and saves one at ``default_data_path``.
 """
 
@@ -99,6 +100,12 @@ def collect_demos(task: str, num_episodes: int, key: jax.Array, obs_keys: tuple[
     return episodes
 
 
+def demo_buffer(task: str, episodes: list[dict[str, np.ndarray]]) -> ReplayBuffer:
+    """``collect_demos``'s episodes of ``task`` as a buffer that records the task's ``action_kinds`` (saved as the
+    zarr root attribute ``action_kinds``)."""
+    return ReplayBuffer.from_episodes(episodes, action_kinds=envs_lib.make(task).action_kinds)
+
+
 def default_data_path(task: str, encoder: EncoderConfig, episodes: int) -> str:
     """``data/<task>_<obs keys>[_<camera>]_<episodes>.zarr``: the camera part (``84px``, ``512pts``, ``512pts-rgb``,
     ``512pts-fps``) appears for image and point-cloud encoders, so buffers of different cameras never collide."""
@@ -130,13 +137,18 @@ def check_buffer(buffer: ReplayBuffer, encoder: EncoderConfig, path: str) -> Non
 
 def check_buffer_fits_env(buffer: ReplayBuffer, env, path: str) -> None:
     """Raise ``ValueError`` naming the key, the buffer's and the env's per-frame shape when the demos' actions or
-    observations do not fit the env the run will be evaluated in (e.g. 7-dim actions for a 4-dim task)."""
+    observations do not fit the env the run will be evaluated in (e.g. 7-dim actions for a 4-dim task), or when
+    the buffer records ``action_kinds`` other than the env's (``env.action_kinds``, where it has them)."""
     expected = {"action": (env.action_dim,), **{k: tuple(v) for k, v in env.obs_shapes.items()}}
     for key, shape in expected.items():
         if key in buffer.data and tuple(buffer.data[key].shape[1:]) != shape:
             raise ValueError(f"{path}: data/{key} has frames of shape {tuple(buffer.data[key].shape[1:])}, the "
                              f"{env.name} task expects {shape}; these demos are not of this task "
                              f"(pass its --task or other --data)")
+    task_kinds = getattr(env, "action_kinds", None)
+    if buffer.action_kinds is not None and task_kinds is not None and tuple(buffer.action_kinds) != tuple(task_kinds):
+        raise ValueError(f"{path}: records action_kinds {list(buffer.action_kinds)}, the {env.name} task acts with "
+                         f"{list(task_kinds)}; these demos are not of this task (pass its --task or other --data)")
 
 
 def load_or_collect(task: str, encoder: EncoderConfig, episodes: int, path: str, seed: int = 0,
@@ -162,7 +174,7 @@ def load_or_collect(task: str, encoder: EncoderConfig, episodes: int, path: str,
             print(f"collecting {episodes} expert demos of {task} → {path}")
         kwargs = envs_lib.encoder_env_kwargs(encoder)
         episodes_data = collect_demos(task, episodes, jax.random.key(seed), kwargs.pop("obs_keys"), **kwargs)
-        buffer = ReplayBuffer.from_episodes(episodes_data)
+        buffer = demo_buffer(task, episodes_data)
         partial = f"{path}.partial-{os.getpid()}"
         buffer.save(partial)
         os.replace(partial, path)

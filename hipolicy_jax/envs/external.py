@@ -13,7 +13,7 @@ import dataclasses
 import os
 import re
 
-from hipolicy_jax.config import EncoderConfig
+from hipolicy_jax.config import EncoderConfig, check_action_kinds
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,6 +31,13 @@ class ExternalSuite:
     eval_max_steps: int  # the campaigns' episode step limit
     source: str = ""  # the ``source`` attribute its bridge writes into a demo buffer (default ``<name>_bridge``)
     action_space: str = "delta"  # the ``action_space`` attribute its demos must hold (absent: ``delta``)
+    # per action dimension 'absolute' or 'delta' (ChunkConfig.action_kinds): what its demos' actions are, and the
+    # ``action_kinds`` attribute its bridge writes into a demo buffer; None: all absolute
+    action_kinds: tuple[str, ...] | None = None
+
+    def __post_init__(self):
+        if self.action_kinds is not None:
+            check_action_kinds(self.action_kinds, f"SUITES[{self.name!r}].action_kinds", self.action_dim)
 
     @property
     def bridge(self) -> str:
@@ -46,9 +53,12 @@ SUITES: dict[str, ExternalSuite] = {
     # Meta-World v3 (metaworld_bridge): 39-D observation (hand xyz, gripper opening, objects, previous frame, goal),
     # 4-D action (hand xyz displacement, gripper effort); proprioception = hand xyz + gripper (DP3 used a 9-D
     # agent_pos: hand xyz and both fingertips); campaign episodes of 200 steps, DP3's (results/metaworld/PROTOCOL.md)
+    # The hand's displacements are deltas, the gripper effort is absolute: a stride-s action sums s steps of
+    # motion (data.windowing.segment_actions).
     "metaworld": ExternalSuite("metaworld", action_dim=4, state_dim=39, proprio_dim=4,
                                setup="bash scripts/setup_metaworld.sh", collect=_METAWORLD_COLLECT,
-                               evaluate=_METAWORLD_EVALUATE, eval_max_steps=200),
+                               evaluate=_METAWORLD_EVALUATE, eval_max_steps=200,
+                               action_kinds=("delta", "delta", "delta", "absolute")),
     # the same tasks with absolute actions: the hand target's xyz (m) and the gripper effort; the bridge turns a
     # target into the displacement that reaches it (at most 1 cm a step), so a chunk executed at a larger stride
     # moves the hand faster, as in the MJX tasks (results/metaworld/diagnosis/)
@@ -56,7 +66,8 @@ SUITES: dict[str, ExternalSuite] = {
                                       setup="bash scripts/setup_metaworld.sh",
                                       collect=_METAWORLD_COLLECT + " --action-space target",
                                       evaluate=_METAWORLD_EVALUATE + " --action-space target", eval_max_steps=200,
-                                      source="metaworld_bridge", action_space="target"),
+                                      source="metaworld_bridge", action_space="target",
+                                      action_kinds=("absolute",) * 4),
 }
 
 # Initial states of evaluations (results/metaworld/PROTOCOL.md): training seed k's main episodes start from
@@ -96,6 +107,11 @@ class ExternalTask:
     @property
     def action_dim(self) -> int:
         return self.suite.action_dim
+
+    @property
+    def action_kinds(self) -> tuple[str, ...]:
+        """Per action dimension 'absolute' or 'delta' (the suite's; ``MjxEnv.action_kinds``)."""
+        return self.suite.action_kinds or ("absolute",) * self.action_dim
 
     @property
     def obs_dtypes(self) -> dict[str, str]:

@@ -96,6 +96,12 @@ def evaluate_run(run_dir: str, *, episodes: int, first_seed: int, max_steps: int
     fingerprint = params_fingerprint(backend._args.params)
     settings = {"episodes": episodes, "first_seed": first_seed, "max_steps": max_steps,
                 "inference": backend.metadata.get("inference"), "thresholds": backend.metadata.get("thresholds")}
+    flags = ""
+    if inference is not None and inference.semantics != "rate":  # the bridge executes; rate settings stay as they were
+        settings["semantics"] = {"semantics": inference.semantics, "waypoint_tolerance": inference.waypoint_tolerance,
+                                 "waypoint_steps": inference.waypoint_steps}
+        flags = (f" --semantics {inference.semantics} --waypoint-tolerance {inference.waypoint_tolerance!r} "
+                 f"--waypoint-steps {inference.waypoint_steps}")
     path = kept_path(run_dir, backend.metadata.get("checkpoint_step"), settings) if keep else None
     kept = read_kept(path, log) if path is not None else None
     if kept is not None:
@@ -114,7 +120,7 @@ def evaluate_run(run_dir: str, *, episodes: int, first_seed: int, max_steps: int
             cmd = suite.evaluate.format(task=name.partition(":")[2], url=f"ws://127.0.0.1:{server.port}",
                                         episodes=episodes, first_seed=first_seed, envs=envs, max_steps=max_steps,
                                         out=out)
-            _run(cmd + " --no-progress", f"evaluating {run_dir} on {name}", timeout)
+            _run(cmd + flags + " --no-progress", f"evaluating {run_dir} on {name}", timeout)
             with open(out) as f:
                 record = json.load(f)
     finally:

@@ -10,6 +10,12 @@ An external task (``--task metaworld:assembly``, ``envs.external``) trains on de
 evaluates nothing (``eval.every`` 0, no final evaluation: ``experiments.evaluate`` runs its episodes in its own
 simulator through the policy server) and its thresholds are calibrated on the held-out demos alone.
 
+Action kinds (``ChunkConfig.action_kinds``): a run whose ``policy.chunk.action_kinds`` is None takes them from its
+demos (``policy_for_demos``: the buffer's ``action_kinds`` attribute, else the task's: MJX tasks absolute,
+Meta-World's ``metaworld`` suite xyz deltas and an absolute gripper) and stores them in the run's config (its
+checkpoints' meta) when any is a delta; declared kinds must agree with the demos'. With delta kinds a stride-s
+action is a summed delta (``data.windowing.segment_actions``).
+
 Outputs under ``cfg.out_dir()``: ``checkpoints/``, ``metrics.jsonl``, ``tb/``, ``inference.json`` (the inference
 settings of its evaluations), ``calibration.json`` and ``summary.json``.
 """
@@ -30,6 +36,7 @@ from hipolicy_jax.config import (ChunkConfig, EvalConfig, InferenceConfig, Model
 from hipolicy_jax import envs, parallel
 from hipolicy_jax.data.dataset import train_heldout_datasets
 from hipolicy_jax.data.replay_buffer import ReplayBuffer
+from hipolicy_jax.data.windowing import resolve_chunk_kinds
 from hipolicy_jax.envs.base import PROPRIO_DIM
 from hipolicy_jax.envs.demos import check_buffer, check_buffer_fits_env, default_data_path, load_or_collect
 from hipolicy_jax.evaluation import calibration
@@ -110,6 +117,22 @@ class RunConfig:
         return envs.make_for_encoder(self.task, self.policy.encoder)
 
 
+def policy_for_demos(cfg: RunConfig, buffer: ReplayBuffer, env) -> PolicyConfig:
+    """``cfg.policy`` with its ``chunk.action_kinds`` settled against the demos (``windowing.resolve_chunk_kinds``):
+    the buffer's recorded kinds, else the task's (``env.action_kinds``); what the run trains and stores."""
+    chunk = resolve_chunk_kinds(cfg.policy.chunk, buffer.action_kinds, getattr(env, "action_kinds", None),
+                                int(buffer.data["action"].shape[-1]), f"the buffer {cfg.data_path()}")
+    return cfg.policy if chunk == cfg.policy.chunk else dataclasses.replace(cfg.policy, chunk=chunk)
+
+
+def same_policy(stored: PolicyConfig, cfg: PolicyConfig) -> bool:
+    """Whether a run trained with ``stored`` is the run ``cfg`` asks for: equal, or equal but for the action kinds
+    the run took from its demos where ``cfg`` leaves them None."""
+    if cfg.chunk.action_kinds is None:
+        cfg = replace(cfg, **{"chunk.action_kinds": stored.chunk.action_kinds})
+    return stored == cfg
+
+
 def load_external_demos(cfg: RunConfig) -> ReplayBuffer:
     """An external task's demo buffer at ``cfg.data_path()``, checked against the encoder and the task (it is never
     collected here: a missing one is an error naming the commands that make it)."""
@@ -159,14 +182,17 @@ def dry_run(cfg: RunConfig) -> dict:
     else:
         buffer = ReplayBuffer.load(path)
         check_buffer(buffer, cfg.policy.encoder, path)
-    check_buffer_fits_env(buffer, cfg.task_spec(), path)
-    train_ds, val_ds = train_heldout_datasets(buffer, cfg.policy.chunk, cfg.policy.encoder.obs_keys, cfg.val_ratio,
+    env = cfg.task_spec()
+    check_buffer_fits_env(buffer, env, path)
+    policy = policy_for_demos(cfg, buffer, env)
+    train_ds, val_ds = train_heldout_datasets(buffer, policy.chunk, policy.encoder.obs_keys, cfg.val_ratio,
                                               cfg.train.seed, max_action_pad=cfg.train.max_action_pad)
     if len(train_ds) < cfg.train.batch_size:
         raise ValueError(f"train.batch_size: {cfg.train.batch_size} exceeds the {len(train_ds)} training windows")
     batch = train_ds.get_batch(np.arange(2))
     action_dim = int(batch["action"].shape[-1])
-    abstract = jax.eval_shape(lambda: init_policy_params(cfg.policy, action_dim, batch["obs"], jax.random.key(0)))
+    abstract = jax.eval_shape(lambda: init_policy_params(policy, action_dim, batch["obs"], jax.random.key(0)))
+    info.update(action_kinds=list(policy.chunk.kinds(action_dim)))
     info.update(episodes=buffer.num_episodes, frames=buffer.num_frames, train_windows=len(train_ds),
                 heldout_windows=len(val_ds), param_count=param_count(abstract),
                 batch={"action": [cfg.train.batch_size, *batch["action"].shape[1:]],
@@ -235,7 +261,7 @@ def _train(cfg: RunConfig, out: str) -> dict:
                                  progress=False)
     env = cfg.task_spec()
     check_buffer_fits_env(buffer, env, cfg.data_path())  # before any training: the run is evaluated in this env
-    policy = cfg.policy
+    policy = policy_for_demos(cfg, buffer, env)  # the demos' action kinds where cfg leaves them None
     train_ds, val_ds = train_heldout_datasets(buffer, policy.chunk, policy.encoder.obs_keys, cfg.val_ratio,
                                               cfg.train.seed, max_action_pad=cfg.train.max_action_pad)
     print(f"data: {buffer.num_episodes} episodes, {buffer.num_frames} frames; {len(train_ds)} train / "
@@ -329,6 +355,6 @@ def ensure_trained(cfg: RunConfig) -> Run:
         print(f"[runs] training {out}", flush=True)
         train(cfg)
     run = load_run(out)
-    if run.policy.cfg != cfg.policy:
+    if not same_policy(run.policy.cfg, cfg.policy):
         raise ValueError(f"{out} holds a run of a different policy config; delete it or pass another --runs")
     return run
