@@ -33,8 +33,8 @@ def main(argv: list[str] | None = None) -> dict:
                         help="controller speed limits in m/s ('none': no limit)")
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--chunk-len", type=int, default=8)
-    parser.add_argument("--tolerance", type=float, default=InferenceConfig().waypoint_tolerance)
-    parser.add_argument("--waypoint-steps", type=int, default=InferenceConfig().waypoint_steps)
+    parser.add_argument("--tolerance", type=float, default=None, help="m (default: each task's own)")
+    parser.add_argument("--waypoint-steps", type=int, default=None, help="per unit of stride (default: the task's)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="", help="JSON record path (none: print only)")
     args = parser.parse_args(argv)
@@ -47,7 +47,8 @@ def main(argv: list[str] | None = None) -> dict:
             env = envs_lib.make(task, **({} if speed is None else {"controller_speed": speed}))
             for stride in args.strides:
                 for kind in args.semantics:
-                    sem = Semantics(kind, args.tolerance, args.waypoint_steps)
+                    sem = Semantics.of(InferenceConfig(semantics=kind, waypoint_tolerance=args.tolerance,
+                                                       waypoint_steps=args.waypoint_steps), env)
                     row = {"task": task, "controller_speed": speed, "stride": stride, "semantics": kind,
                            **expert_counts(env, stride, args.episodes, jax.random.PRNGKey(args.seed),
                                            chunk_len=args.chunk_len, semantics=sem)}

@@ -10,7 +10,8 @@ client (msgpack, websockets) — never jax or ``hipolicy_jax``. Run it from the 
 
 The project's ``.venv`` trains on the zarr with ``python -m experiments.train --task metaworld:assembly --data ...``.
 
-Modules: ``env`` (seeded task env and scripted expert), ``evaluate`` (closed-loop episodes against the policy
-server, ``experiments.serve``, through ``openpi_client``), ``pointcloud`` (CPU ray-cast point clouds from DP3's
-corner2 camera, DP3's crop, farthest-point sampling), ``store`` (the zarr layout), ``tasks`` (DP3's difficulty groups).
+Modules: ``env`` (seeded task env, scripted expert, the execution semantics ``rate`` | ``waypoint``), ``evaluate``
+(closed-loop episodes against the policy server, ``experiments.serve``, through ``openpi_client``), ``pointcloud``
+(CPU ray-cast point clouds from DP3's corner2 camera, DP3's crop, farthest-point sampling), ``store`` (the zarr
+layout), ``tasks`` (DP3's difficulty groups).
 """

@@ -6,7 +6,10 @@ Seeds ``--seed``, ``--seed + 1``, ... give the initial states (``env.MetaWorldTa
 if the expert succeeded, and seeds are drawn until ``--episodes`` succeeded (at most ``--max-seeds``). Each kept
 episode is cut at its success step and holds ``state`` (T, 39), ``action`` (T, 4) and, unless
 ``--no-point-cloud``, ``point_cloud`` (T, --num-points, 3): DP3's corner2 camera ray-cast at ``--camera-size``
-squared pixels, cropped and farthest-point sampled (``pointcloud.py``). The expert first runs without the camera
+squared pixels, cropped and farthest-point sampled (``pointcloud.py``). The buffer's root attribute ``action_kinds``
+says per action dim whether it is ``absolute`` or a ``delta`` (``--action-space delta``: ``["delta", "delta",
+"delta", "absolute"]``, xyz displacements and the gripper's effort; ``target``: all ``absolute``), so training can
+sum a stride-s segment's deltas. The expert first runs without the camera
 (a failed episode costs only physics); a successful one is replayed with it and must repeat itself exactly.
 
 Train on the result in the project's venv: ``python -m experiments.train --task metaworld:assembly --data <out>``.
@@ -22,7 +25,7 @@ import time
 
 import numpy as np
 
-from metaworld_bridge.env import ACTION_SPACES, MAX_STEPS, PROPRIO_DIM, SUITE_OF_SPACE, MetaWorldTask
+from metaworld_bridge.env import ACTION_SPACES, KINDS_OF_SPACE, MAX_STEPS, PROPRIO_DIM, SUITE_OF_SPACE, MetaWorldTask
 from metaworld_bridge.pointcloud import (DP3_CAMERA_POS, DP3_CROP_HIGH, DP3_CROP_LOW, DP3_FLOOR_Z, DP3_IMAGE_SIZE,
                                          DP3_NUM_POINTS, CameraConfig, PointCloudCamera)
 from metaworld_bridge.store import write_buffer
@@ -102,7 +105,7 @@ def collect(task: str, episodes: int, seed: int = 0, *, num_points: int | None =
         "seeds": kept_seeds, "failed_seeds": failed_seeds, "steps": steps, "max_steps": max_steps,
         "episode_end": "first success (info['success'])", "proprio_dims": PROPRIO_DIM,
         "state": "Meta-World's 39-D observation (hand xyz, gripper opening, objects, previous frame, goal)",
-        "action_space": action_space,
+        "action_space": action_space, "action_kinds": list(KINDS_OF_SPACE[action_space]),
         "action": ("xyz displacement of the hand target and gripper effort, clipped to [-1, 1]"
                    if action_space == "delta" else
                    "the hand target's absolute xyz (m, world frame) after the step, and the gripper effort"),

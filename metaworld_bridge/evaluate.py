@@ -14,18 +14,33 @@ the first step whose ``info["success"]`` is set (success; ``steps`` = the steps 
 **Decisions.** Each decision sends one robot's observation history ``{key: (obs_span, ...)}`` (the keys and shapes
 the server's manifest lists; ``state`` (39,) and, for point-cloud policies, ``point_cloud`` (P, 3) from DP3's
 corner2 camera, ``pointcloud.py``; an episode's start is padded by repeating its first frame) and gets the actions to
-execute, which run one per control step until the reply is used up, the task succeeds or the step limit comes. The
+execute and the ``stride`` they were decided at, which run one after another until the reply is used up, the task
+succeeds or the step limit comes. The history gets one frame per action, after the action completes. The
 decision's PRNG key is sent with it: decision n of the episode from seed s uses the raw key ``(s, n)``, so an
 episode's outcome is a function of (policy, seed) alone, the same for every batch size and server (up to the float
 rounding of a batched call, which can differ by batch size in the last digits).
+
+**Execution semantics** (``--semantics``, ``env.MetaWorldTask.execute``): ``rate`` (the default) gives each action
+one control step; ``waypoint`` (HiPolicy's release) gives each action's target to the controller until the hand's
+mocap target has arrived there and the hand is within ``--waypoint-tolerance`` m of it, or ``--waypoint-steps`` x
+the decision's stride control steps ran. A delta action's target is relative to where the hand's mocap target is
+when the action starts. The step limit counts
+control steps (physical time, 12.5 ms each) under both. The server's metadata may declare ``action_kinds`` (one of
+``absolute`` / ``delta`` per action dim; a policy trained on summed deltas: ``["delta", "delta", "delta",
+"absolute"]``; missing: all absolute); under ``rate`` a summed delta beyond [-1, 1] is clipped by Meta-World's limit,
+and the record counts such actions (``clipped``).
 
 **Batching.** ``--envs`` E episodes run at once, each on its own connection (openpi's protocol is one robot per
 connection). Every round, each running episode's request is sent from its own thread at the same time and the
 server's micro-batching decides them in one batched call (``--max-batch`` on the server ≥ E); then the envs step.
 
-The result (``--out``, JSON) holds per episode: seed, success, steps, decisions, the strides chosen and the mean
-entropy; and the run's manifest entries (task, run, checkpoint step, strides, inference settings), the command and
-wall-clock split (env, camera, waiting for the server).
+The result (``--out``, JSON) holds per episode: seed, success, ``steps`` (control steps: physical time; also as
+``control_steps``), ``decisions``, ``actions`` (executed), ``clipped`` (actions the per-step limit cut, ``rate``),
+``unreached`` (actions that ran into the bound before their target was reached, ``waypoint``), the strides
+chosen and the mean entropy; their means (``mean_steps``, ``mean_control_steps``, ``mean_decisions``,
+``mean_actions``), the execution settings (``semantics``, ``waypoint_tolerance``, ``waypoint_steps``,
+``action_kinds``); and the run's manifest entries (task, run, checkpoint step, strides, inference settings), the
+command and wall-clock split (env, camera, waiting for the server).
 """
 
 from __future__ import annotations
@@ -45,7 +60,8 @@ import urllib.request
 
 import numpy as np
 
-from metaworld_bridge.env import (ACTION_DIM, ACTION_SPACES, MAX_STEPS, MOVE_CLIPS, OBS_DIM, SUITE_OF_SPACE,
+from metaworld_bridge.env import (ACTION_DIM, ACTION_KINDS, ACTION_SPACES, MAX_STEPS, MOVE_CLIPS, OBS_DIM,
+                                  SEMANTICS, SUITE_OF_SPACE, WAYPOINT_STEPS, WAYPOINT_TOLERANCE,
                                   MetaWorldTask)
 from metaworld_bridge.pointcloud import DP3_IMAGE_SIZE, CameraConfig, PointCloudCamera
 from metaworld_bridge.tasks import task_name
@@ -55,18 +71,24 @@ OBS_KEYS = ("state", "point_cloud")
 
 @dataclasses.dataclass
 class EpisodeResult:
-    """What one episode did."""
+    """What one episode did: ``steps`` control steps (physical time), ``decisions`` server replies, ``actions``
+    executed, ``clipped`` / ``unreached`` actions (``MetaWorldTask.execute``)."""
 
     seed: int
     success: bool
     steps: int
     decisions: int = 0
+    actions: int = 0
+    clipped: int = 0
+    unreached: int = 0
     strides: list[int] = dataclasses.field(default_factory=list)
     entropy: list[float] = dataclasses.field(default_factory=list)
 
     def summary(self) -> dict:
         ent = [e for e in self.entropy if np.isfinite(e)]
         return {"seed": self.seed, "success": self.success, "steps": self.steps, "decisions": self.decisions,
+                "actions": self.actions, "control_steps": self.steps, "clipped": self.clipped,
+                "unreached": self.unreached,
                 "strides": dict(sorted(collections.Counter(self.strides).items())),
                 "mean_entropy": float(np.mean(ent)) if ent else None}
 
@@ -86,6 +108,25 @@ def check_server(url: str, timeout: float = 5.0) -> None:
         raise ConnectionError(f"url: no policy server answers at {url} ({reason}); start one in the project's venv: "
                               f"python -m experiments.serve --checkpoint RUN_DIR") from None
     raise ConnectionError(f"url: {url}/healthz did not answer 200")
+
+
+def action_kinds(metadata: dict, action_space: str = "delta") -> list[str]:
+    """The served policy's ``action_kinds`` (one of ``env.ACTION_KINDS`` per action dim; missing: all absolute, as
+    every policy trained before kinds were declared), checked against the ``action_space`` its actions are executed
+    in (a delta on xyz cannot be an absolute target; the gripper is an effort); ``ValueError`` names the mismatch."""
+    kinds = metadata.get("action_kinds")
+    if kinds is None:
+        return ["absolute"] * ACTION_DIM
+    kinds = list(kinds)
+    if len(kinds) != ACTION_DIM or any(k not in ACTION_KINDS for k in kinds):
+        raise ValueError(f"action_kinds: the server declares {kinds}; expected {ACTION_DIM} of "
+                         f"{', '.join(ACTION_KINDS)}")
+    if kinds[3] != "absolute":
+        raise ValueError(f"action_kinds: the gripper (dim 3) is an effort, declared {kinds[3]!r}; expected 'absolute'")
+    if action_space == "target" and "delta" in kinds:
+        raise ValueError(f"action_kinds: the served policy's xyz actions are {kinds[:3]}, displacements; absolute "
+                         f"targets expected with --action-space target (pass --action-space delta)")
+    return kinds
 
 
 def check_metadata(metadata: dict, task: str, action_space: str = "delta") -> dict[str, tuple[int, ...]]:
@@ -120,9 +161,11 @@ class _Slot:
     """One env and its connection: runs one episode at a time."""
 
     def __init__(self, task: str, make_client, shapes: dict, camera_size: int, max_steps: int,
-                 action_space: str = "delta", move_limit: float = 1.0, move_clip: str = "axis"):
+                 action_space: str = "delta", move_limit: float = 1.0, move_clip: str = "axis",
+                 semantics: str = "rate", tolerance: float = WAYPOINT_TOLERANCE, waypoint_steps: int = WAYPOINT_STEPS):
         self.env = MetaWorldTask(task, max_steps=max_steps, action_space=action_space, move_limit=move_limit,
                                  move_clip=move_clip)
+        self.semantics, self.tolerance, self.waypoint_steps = semantics, tolerance, waypoint_steps
         self.client = make_client()
         self.shapes = shapes
         self.camera = None
@@ -161,16 +204,20 @@ class _Slot:
         actions = np.asarray(reply["actions"], np.float32)
         if actions.ndim != 2 or actions.shape[1] != ACTION_DIM or len(actions) == 0:
             raise ValueError(f"reply: actions of shape {actions.shape}, expected (n >= 1, {ACTION_DIM})")
+        stride = int(reply.get("stride", 0))
         r.decisions += 1
-        r.strides.append(int(reply.get("stride", 0)))
+        r.strides.append(stride)
         r.entropy.append(float(reply.get("entropy", float("nan"))))
         for a in actions:
-            obs, success, truncated = self.env.step(a)
-            r.steps += 1
-            if success or truncated:
-                r.success = success
+            done = self.env.execute(a, self.semantics, max(stride, 1), self.tolerance, self.waypoint_steps)
+            r.actions += 1
+            r.steps += done.control_steps
+            r.clipped += done.clipped
+            r.unreached += done.unreached
+            if done.success or done.truncated:
+                r.success = done.success
                 return True
-            for k, v in self._frame(obs).items():
+            for k, v in self._frame(done.obs).items():  # one frame per action, after it completes
                 self.history[k].append(v)
         return False
 
@@ -184,11 +231,14 @@ def _openpi_client(url: str, api_key: str | None):
 
 def evaluate(task: str, url: str, episodes: int, first_seed: int, *, num_envs: int = 10, max_steps: int = MAX_STEPS,
              camera_size: int = DP3_IMAGE_SIZE, api_key: str | None = None, progress: bool = True,
-             action_space: str = "delta", move_limit: float = 1.0, move_clip: str = "axis") -> dict:
+             action_space: str = "delta", move_limit: float = 1.0, move_clip: str = "axis", semantics: str = "rate",
+             waypoint_tolerance: float = WAYPOINT_TOLERANCE, waypoint_steps: int = WAYPOINT_STEPS) -> dict:
     """Run ``episodes`` episodes of ``task`` (seeds ``first_seed`` ...) against the server at ``url``, executing its
     actions in ``action_space`` (targets with at most ``move_limit`` cm a step, bounded by ``move_clip``:
-    ``env.MOVE_CLIPS``); → the record (see the module docstring)."""
+    ``env.MOVE_CLIPS``) under ``semantics`` (``env.SEMANTICS``; ``waypoint``: within ``waypoint_tolerance`` m, at
+    most ``waypoint_steps`` x stride control steps an action); → the record (see the module docstring)."""
     MetaWorldTask.check_move(action_space, move_limit, move_clip)
+    MetaWorldTask.check_semantics(semantics, waypoint_tolerance, waypoint_steps)
     if episodes < 1:
         raise ValueError(f"episodes: must be >= 1, got {episodes}")
     if num_envs < 1:
@@ -200,10 +250,12 @@ def evaluate(task: str, url: str, episodes: int, first_seed: int, *, num_envs: i
     first = _openpi_client(url, api_key)
     metadata = first.get_server_metadata()
     shapes = check_metadata(metadata, task, action_space)
+    kinds = action_kinds(metadata, action_space)
     num_envs = min(num_envs, episodes)
     clients = iter([first])
     slots = [_Slot(task, lambda: next(clients, None) or _openpi_client(url, api_key), shapes, camera_size, max_steps,
-                   action_space, move_limit, move_clip) for _ in range(num_envs)]
+                   action_space, move_limit, move_clip, semantics, waypoint_tolerance, waypoint_steps)
+             for _ in range(num_envs)]
     seeds = list(range(first_seed, first_seed + episodes))
     done: list[EpisodeResult] = []
     wait_s = env_s = 0.0
@@ -247,8 +299,19 @@ def evaluate(task: str, url: str, episodes: int, first_seed: int, *, num_envs: i
         "task": task_name(task), "url": url, "episodes": len(done), "first_seed": first_seed,
         "seeds": [r.seed for r in done], "max_steps": max_steps, "envs": num_envs, "action_space": action_space,
         "move_limit": move_limit, "move_clip": move_clip,
+        "semantics": semantics, "waypoint_tolerance": waypoint_tolerance, "waypoint_steps": waypoint_steps,
+        "action_kinds": kinds, "summed_deltas": "delta" in kinds,
         "success_rate": successes / len(done), "successes": successes,
         "mean_steps": float(np.mean([r.steps for r in done])),
+        "mean_control_steps": float(np.mean([r.steps for r in done])),
+        "mean_decisions": float(np.mean([r.decisions for r in done])),
+        "mean_actions": float(np.mean([r.actions for r in done])),
+        "clipped": {"actions": sum(r.clipped for r in done), "of": sum(r.actions for r in done),
+                    "what": "actions whose move the per-control-step limit cut (rate: clipped by the environment's "
+                            "limit, Meta-World's [-1, 1] for displacements, --move-limit for targets)"},
+        "unreached": {"actions": sum(r.unreached for r in done), "of": sum(r.actions for r in done),
+                      "what": "waypoint: actions that ran into the bound of control steps before their target was "
+                              "reached (the mocap target there, the hand within the tolerance)"},
         "policy": {k: metadata.get(k) for k in ("task", "run", "checkpoint_step", "strides", "chunk_len",
                                                  "obs_span", "num_samples", "inference", "thresholds_source")},
         "server": metadata.get("server"), "camera_size": camera_size if "point_cloud" in shapes else None,
@@ -258,6 +321,20 @@ def evaluate(task: str, url: str, episodes: int, first_seed: int, *, num_envs: i
         "openpi_client": importlib.metadata.version("openpi-client"),
         "per_episode": [r.summary() for r in done],
     }
+
+
+def add_semantics_flags(parser: argparse.ArgumentParser, many: bool = False) -> None:
+    """``--semantics`` (several with ``many``), ``--waypoint-tolerance`` and ``--waypoint-steps``; checked by
+    ``MetaWorldTask.check_semantics`` (one-line errors naming the option)."""
+    parser.add_argument("--semantics", default=["rate"] if many else "rate", nargs="+" if many else None,
+                        help=f"how each action is executed: {' or '.join(SEMANTICS)} (rate: one control step an "
+                             "action; waypoint: the action's target is held until the hand reaches it or the bound)")
+    parser.add_argument("--waypoint-tolerance", type=float, default=WAYPOINT_TOLERANCE,
+                        help=f"waypoint: the hand counts as at its target within this many metres (default "
+                             f"{WAYPOINT_TOLERANCE}, measured: env.py's docstring)")
+    parser.add_argument("--waypoint-steps", type=int, default=WAYPOINT_STEPS,
+                        help=f"waypoint: an action runs at most this many control steps x its decision's stride "
+                             f"(default {WAYPOINT_STEPS})")
 
 
 def _progress(total: int, desc: str, enabled: bool):
@@ -289,6 +366,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--move-clip", default="axis", choices=list(MOVE_CLIPS),
                         help="target actions: clip each axis to the limit (axis, Meta-World's own) or scale the move "
                              "keeping its direction (direction)")
+    add_semantics_flags(parser)
     parser.add_argument("--out", default="", help="write the record here (JSON)")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
@@ -296,7 +374,8 @@ def main(argv: list[str] | None = None) -> dict:
         record = evaluate(args.task, args.url, args.episodes, args.first_seed, num_envs=args.envs,
                           max_steps=args.max_steps, camera_size=args.camera_size, api_key=args.api_key or None,
                           progress=not args.no_progress, action_space=args.action_space,
-                          move_limit=args.move_limit, move_clip=args.move_clip)
+                          move_limit=args.move_limit, move_clip=args.move_clip, semantics=args.semantics,
+                          waypoint_tolerance=args.waypoint_tolerance, waypoint_steps=args.waypoint_steps)
     except (ValueError, ConnectionError, RuntimeError) as e:
         raise SystemExit(f"error: {e}")
     record["command"] = " ".join(["python -m metaworld_bridge.evaluate", *(argv if argv is not None else sys.argv[1:])])
@@ -305,9 +384,13 @@ def main(argv: list[str] | None = None) -> dict:
         with open(args.out, "w") as f:
             json.dump(record, f, indent=1)
     s = record["seconds"]
+    clip, miss = record["clipped"], record["unreached"]
+    note = (f"{clip['actions']} of {clip['of']} actions clipped by the environment's limit" if args.semantics == "rate"
+            else f"{miss['actions']} of {miss['of']} actions unreached within the bound")
     print(f"{record['task']}: {record['successes']}/{record['episodes']} success ({100 * record['success_rate']:.1f} %), "
-          f"mean steps {record['mean_steps']:.1f}; {s['total']:.1f} s (server {s['server_wait']:.1f}, env "
-          f"{s['env']:.1f}, camera {s['camera']:.1f})" + (f" → {args.out}" if args.out else ""))
+          f"{args.semantics}: mean decisions {record['mean_decisions']:.1f}, actions {record['mean_actions']:.1f}, "
+          f"control steps {record['mean_steps']:.1f}; {note}; {s['total']:.1f} s (server {s['server_wait']:.1f}, "
+          f"env {s['env']:.1f}, camera {s['camera']:.1f})" + (f" → {args.out}" if args.out else ""))
     return record
 
 

@@ -4,7 +4,8 @@
 ``meta/episode_ends`` the cumulative end of each episode (int64, strictly increasing, last = number of frames).
 Keys written by the bridge: ``state`` (T, 39) float32, ``action`` (T, 4) float32 and, with a camera,
 ``point_cloud`` (T, P, 3) float32. The root's attributes record where the demos came from (task, seeds, camera,
-crop); ``ReplayBuffer.load`` does not need them. Each array stores its SHA-256 and each chunk zstd's checksum, as
+crop) and ``action_kinds`` (one of ``absolute`` / ``delta`` per action dim: whether a stride-s segment samples or
+sums it); ``ReplayBuffer.load`` does not need them. Each array stores its SHA-256 and each chunk zstd's checksum, as
 ``ReplayBuffer.save`` writes them, so a buffer damaged on disk is named when it is read.
 
 The buffer is written to a temporary sibling and renamed into place, so no reader ever sees a half-written one.
@@ -66,6 +67,11 @@ def write_buffer(path: str, episodes: Sequence[dict[str, np.ndarray]], attrs: di
     if os.path.lexists(path) and not overwrite:
         raise FileExistsError(f"out: {path} already exists; pass --overwrite to replace it, or another --out")
     data, ends = concatenate(episodes)
+    kinds = (attrs or {}).get("action_kinds")
+    if kinds is not None and "action" in data and (len(kinds) != data["action"].shape[-1]
+                                                   or not set(kinds) <= {"absolute", "delta"}):
+        raise ValueError(f"action_kinds: one of absolute / delta per action dim ({data['action'].shape[-1]}), got "
+                         f"{list(kinds)}")
     parent = os.path.dirname(os.path.abspath(path))
     os.makedirs(parent, exist_ok=True)
     partial = f"{path}.partial-{os.getpid()}"

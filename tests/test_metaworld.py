@@ -249,8 +249,12 @@ def test_metaworld_episodes_through_the_policy_server(served, tmp_path):
         assert 1 <= ep["steps"] <= MAX_STEPS and ep["decisions"] >= 1
         assert ep["success"] or ep["steps"] == MAX_STEPS  # an episode ends at success or the step limit
         assert sum(ep["strides"].values()) == ep["decisions"]
+        assert ep["actions"] == ep["control_steps"] == ep["steps"] and ep["unreached"] == 0  # rate: a step an action
         assert set(map(int, ep["strides"])) <= set(rec["policy"]["strides"])
     assert rec["openpi_client"] == "0.1.2" and rec["seconds"]["camera"] > 0
+    assert rec["semantics"] == "rate"
+    assert rec["action_kinds"] == list(srv.metadata.get("action_kinds", ["absolute"] * 4))  # undeclared: absolute
+    assert rec["mean_control_steps"] == rec["mean_steps"] == rec["mean_actions"] >= rec["mean_decisions"]
     # one env at a time, on the same seeds: the same episodes, decision for decision
     r1, one = evaluate_remote(url, tmp_path, "--episodes", "2", "--envs", "1", "--first-seed", "500")
     assert r1.returncode == 0, r1.stderr[-3000:]

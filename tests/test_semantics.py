@@ -135,7 +135,7 @@ def test_controller_speed_bounds_the_hand_and_waypoints_wait_for_it():
 def test_bad_settings_name_the_field():
     with pytest.raises(ValueError, match="inference.semantics: must be 'rate' or 'waypoint'"):
         InferenceConfig(semantics="teleport")
-    with pytest.raises(ValueError, match=r"inference.waypoint_tolerance: \(m\) must be > 0"):
+    with pytest.raises(ValueError, match=r"inference.waypoint_tolerance: \(m\) must be None \(the env"):
         InferenceConfig(waypoint_tolerance=0.0)
     with pytest.raises(ValueError, match="inference.waypoint_steps"):
         InferenceConfig(waypoint_steps=0)
@@ -145,6 +145,10 @@ def test_bad_settings_name_the_field():
         envs.make("press_button", controller_speed=0.0)
     with pytest.raises(ValueError, match="semantics: must be 'rate' or 'waypoint'"):
         _toy(Semantics("teleport"))
+    # bounds left None are the env's own; given ones win
+    env = envs.make("press_button")
+    assert Semantics.of(InferenceConfig(semantics="waypoint"), env) == Semantics("waypoint", 0.005, 3)
+    assert Semantics.of(InferenceConfig(semantics="waypoint", waypoint_steps=7), env).steps == 7
 
 
 def test_rate_evaluation_keys_are_unchanged_and_other_semantics_get_their_own():
@@ -152,7 +156,9 @@ def test_rate_evaluation_keys_are_unchanged_and_other_semantics_get_their_own():
     rate = json.loads(evaluation_key(InferenceConfig(), col, 100, 3))
     assert "semantics" not in rate and "controller_speed" not in rate
     way = json.loads(evaluation_key(InferenceConfig(semantics="waypoint"), col, 100, 3))
-    assert way["semantics"] == "waypoint" and way["waypoint_tolerance"] == 0.005 and way["waypoint_steps"] == 3
+    assert way["semantics"] == "waypoint" and way["waypoint_tolerance"] is None and way["waypoint_steps"] is None
+    way = json.loads(evaluation_key(InferenceConfig(semantics="waypoint", waypoint_tolerance=0.01), col, 100, 3))
+    assert way["waypoint_tolerance"] == 0.01
     slow = json.loads(evaluation_key(InferenceConfig(controller_speed=0.25), col, 100, 3))
     assert slow["semantics"] == "rate" and slow["controller_speed"] == 0.25 and slow["waypoint_steps"] is None
     # what a compiled rollout depends on includes the semantics; what a sampler depends on does not

@@ -67,7 +67,8 @@ class Column(NamedTuple):
 
     ``percentiles``: thresholds at these percentiles of the run's held-out demo entropies instead of its
     ``calibration.json``; ``guided=False``: always the highest frequency; ``execution``: the execution strategy
-    (``InferenceConfig.execution``)."""
+    (``InferenceConfig.execution``); ``semantics`` / ``controller_speed``: how each action executes and the MJX
+    controller's speed limit (``InferenceConfig``; columns that differ only in these evaluate the same networks)."""
 
     label: str
     obs_type: str = "state"
@@ -75,6 +76,8 @@ class Column(NamedTuple):
     guided: bool = True
     percentiles: tuple[float, ...] | None = None
     execution: str = "chunk"
+    semantics: str = "rate"
+    controller_speed: float | None = None
 
 
 def record_path(records: str, runs: str, cfg: RunConfig) -> str:
@@ -156,7 +159,8 @@ class Campaign:
         return self._key(col, seed)[1] in self.record(task, col, seed, run_changes).get("evaluations", {})
 
     def _key(self, col: Column, seed: int) -> tuple[InferenceConfig, str]:
-        inference = dataclasses.replace(self.inference, execution=col.execution)
+        inference = dataclasses.replace(self.inference, execution=col.execution, semantics=col.semantics,
+                                        controller_speed=col.controller_speed)
         return inference, evaluation_key(inference, col, self.episodes, seed)
 
     def evaluate(self, task: str, col: Column, seed: int, run_changes: dict | None = None,
@@ -254,6 +258,7 @@ class Campaign:
                       "success": [bool(e["success"]) for e in rec["per_episode"]],
                       "steps": [int(e["steps"]) for e in rec["per_episode"]],
                       "decisions": [int(e["decisions"]) for e in rec["per_episode"]],
+                      "actions": [int(e.get("actions", e["steps"])) for e in rec["per_episode"]],
                       "first_seed": first, "max_steps": max_steps, "eval_s": rec["wall_s"],
                       "eval_cpu_s": rec.get("cpu_s"), "cpu_cores": cpu_cores(), "timing": rec["seconds"]}
         b = BUDGETS[self.budget]

@@ -170,6 +170,12 @@ class MjxEnv:
     # mocap bodies, so placements are episode-specific ``body_pos`` values kept in ``info['body_pos']`` (n, 3) and
     # written into the model used by that episode (``episode_model``).
     randomised_bodies: tuple[str, ...] = ()
+    # ``waypoint`` execution (``InferenceConfig.semantics``): the hand is at a target within this distance (m), and a
+    # target gets at most this many control steps per unit of stride. Measured on the scripted experts: after one
+    # 0.1 s control step the hand is within 2 mm of a stride-1 target (99th percentile) and of a stride-3 one except
+    # in contact (press_button, stack_cubes; docs/execution.md)
+    waypoint_tolerance: float = 0.005
+    waypoint_steps: int = 3
 
     def __init__(self, *, control_dt: float = 0.1, max_steps: int | None = None,
                  obs_keys: tuple[str, ...] = ("state",), camera=None, expert_wobble: float = 0.0015,

@@ -54,7 +54,7 @@ class Evaluator:
                                 chunk_len=execution.exec_len(cfg.chunk), max_steps=max_steps,
                                 min_actions=execution.min_actions(cfg.chunk), compact=compact,
                                 rows_per_episode=inference.samples_drawn(cfg.chunk.num_freqs),
-                                semantics=Semantics.of(inference))
+                                semantics=Semantics.of(inference, self.env))
         self._sampler = None
 
     @property

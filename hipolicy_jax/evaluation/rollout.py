@@ -166,9 +166,11 @@ class Semantics(NamedTuple):
     steps: int = 3
 
     @classmethod
-    def of(cls, inference) -> "Semantics":
-        """The semantics an ``InferenceConfig`` names."""
-        return cls(inference.semantics, inference.waypoint_tolerance, inference.waypoint_steps)
+    def of(cls, inference, env: MjxEnv) -> "Semantics":
+        """The semantics an ``InferenceConfig`` names, the waypoint bounds it leaves None the env's own."""
+        tol, steps = inference.waypoint_tolerance, inference.waypoint_steps
+        return cls(inference.semantics, env.waypoint_tolerance if tol is None else tol,
+                   env.waypoint_steps if steps is None else steps)
 
     def check(self) -> None:
         if self.kind not in ("rate", "waypoint"):

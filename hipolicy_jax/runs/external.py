@@ -100,8 +100,10 @@ def evaluate_run(run_dir: str, *, episodes: int, first_seed: int, max_steps: int
     if inference is not None and inference.semantics != "rate":  # the bridge executes; rate settings stay as they were
         settings["semantics"] = {"semantics": inference.semantics, "waypoint_tolerance": inference.waypoint_tolerance,
                                  "waypoint_steps": inference.waypoint_steps}
-        flags = (f" --semantics {inference.semantics} --waypoint-tolerance {inference.waypoint_tolerance!r} "
-                 f"--waypoint-steps {inference.waypoint_steps}")
+        flags = f" --semantics {inference.semantics}"  # bounds left None: the bridge's own, measured on its experts
+        tol, steps = inference.waypoint_tolerance, inference.waypoint_steps
+        flags += ("" if tol is None else f" --waypoint-tolerance {tol!r}") + \
+            ("" if steps is None else f" --waypoint-steps {steps}")
     path = kept_path(run_dir, backend.metadata.get("checkpoint_step"), settings) if keep else None
     kept = read_kept(path, log) if path is not None else None
     if kept is not None:
@@ -158,11 +160,13 @@ def read_kept(path: str, log=print) -> dict | None:
 
 
 def external_summary(record: dict) -> dict:
-    """``eval_summary``'s scalars from a bridge's evaluation record (``evaluate_run``)."""
+    """``eval_summary``'s scalars from a bridge's evaluation record (``evaluate_run``): ``steps`` are control steps,
+    ``actions`` the actions executed (a record from before the bridge counted them: one per control step)."""
     eps = record["per_episode"]
     success = np.asarray([e["success"] for e in eps], bool)
     steps = np.asarray([e["steps"] for e in eps], float)
     decisions = np.asarray([e["decisions"] for e in eps], float)
+    actions = np.asarray([e.get("actions", e["steps"]) for e in eps], float)
     counts: dict[int, int] = {}
     for e in eps:
         for stride, n in e["strides"].items():
@@ -170,7 +174,8 @@ def external_summary(record: dict) -> dict:
     out = {"success_rate": float(success.mean()),
            "mean_steps_success": float(steps[success].mean()) if success.any() else float("nan"),
            "mean_steps": float(steps.mean()), "mean_decisions": float(decisions.mean()),
-           "mean_actions_per_decision": float(steps.sum() / max(decisions.sum(), 1))}
+           "mean_actions": float(actions.mean()),
+           "mean_actions_per_decision": float(actions.sum() / max(decisions.sum(), 1))}
     total = sum(counts.values())
     for stride in sorted(counts):
         out[f"stride{stride}_frac"] = counts[stride] / total
@@ -181,9 +186,11 @@ def external_summary(record: dict) -> dict:
 
 
 def summary(record: dict) -> dict:
-    """``external_summary`` plus per episode ``success``, ``steps`` and ``decisions``."""
-    return {**external_summary(record), **{k: [type_(e[k]) for e in record["per_episode"]] for k, type_ in
-                                           (("success", bool), ("steps", int), ("decisions", int))}}
+    """``external_summary`` plus per episode ``success``, ``steps`` (control steps), ``decisions`` and ``actions``."""
+    eps = record["per_episode"]
+    return {**external_summary(record), **{k: [type_(e[k]) for e in eps] for k, type_ in
+                                           (("success", bool), ("steps", int), ("decisions", int))},
+            "actions": [int(e.get("actions", e["steps"])) for e in eps]}
 
 
 def evaluate_report(run_dir: str, inference: InferenceConfig, *, episodes: int, seed: int, step: int | None = None,
