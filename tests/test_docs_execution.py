@@ -90,3 +90,30 @@ def test_mjx_expert_table_recomputes():
 
 def test_no_table_left_unfilled():
     assert not re.search(r"\|\s*(TODO|TBD|\?)\s*\|", _doc())
+
+
+def test_metaworld_amendment_2_task_rule_and_counts():
+    """results/metaworld/PROTOCOL.md, amendment 2: the expert counts it quotes and its task rule's outcome."""
+    tasks = _metaworld_tasks()
+    with open(os.path.join(ROOT, "results", "metaworld", "PROTOCOL.md")) as f:
+        text = " ".join(f.read().split())
+    total = {v: [sum(tasks[t][v][s]["successes"] for t in tasks) for s in "23"]
+             for v in ("target@waypoint", "target", "delta")}
+    assert (f"keeps {total['target@waypoint'][0]} and {total['target@waypoint'][1]} of 200 successes at strides 2 and "
+            f"3 (10 tasks × 20 seeds) against {total['target'][0]} and {total['target'][1]} under `rate`; displacements taken "
+            f"every s-th keep {total['delta'][0]} and {total['delta'][1]}") in text
+    order = ["basketball", "assembly", "shelf-place", "bin-picking", "hand-insert", "stick-push", "coffee-pull",
+             "pick-out-of-hole", "pick-place-wall", "coffee-push"]
+    dp_below_80 = {"basketball", "assembly", "shelf-place", "bin-picking", "hand-insert", "pick-out-of-hole",
+                   "pick-place-wall"}  # results/metaworld/main.md, the DP column
+    amendment_1 = ["bin-picking", "stick-push", "coffee-pull"]
+
+    def passes(t):
+        c = tasks[t]["target@waypoint"]
+        return c["1"]["successes"] >= 18 and c["2"]["successes"] >= 16 and c["3"]["successes"] >= 16
+
+    chosen = [t for t in order if t not in amendment_1 and t in dp_below_80 and passes(t)][:2]
+    assert chosen == ["hand-insert", "pick-out-of-hole"]
+    for t in ("hand-insert", "pick-out-of-hole"):
+        c = tasks[t]["target@waypoint"]
+        assert f"**{t}** ({c['1']['successes']}/{c['2']['successes']}/{c['3']['successes']})" in text
