@@ -117,3 +117,13 @@ def test_metaworld_amendment_2_task_rule_and_counts():
     for t in ("hand-insert", "pick-out-of-hole"):
         c = tasks[t]["target@waypoint"]
         assert f"**{t}** ({c['1']['successes']}/{c['2']['successes']}/{c['3']['successes']})" in text
+
+
+def test_readme_metaworld_recipe_counts():
+    tasks = _metaworld_tasks()
+    with open(os.path.join(ROOT, "README.md")) as f:
+        text = " ".join(f.read().split())
+    summed = [sum(tasks[t]["delta+summed@waypoint"][s]["successes"] for t in tasks) for s in "23"]
+    every = [sum(tasks[t]["delta"][s]["successes"] for t in tasks) for s in "23"]
+    assert (f"the scripted expert keeps {summed[0]} and {summed[1]} of 200 successes at strides 2 and 3; taking "
+            f"every s-th displacement, as runs before 2026-12-07 did, it keeps {every[0]} and {every[1]}") in text
