@@ -97,6 +97,34 @@ def ci(records: list[dict], metric: str, seeds, tasks, scale: float = 1.0, **mat
     return interval_text(iv, scale)
 
 
+EPISODE_COUNTS = {"decisions": "decisions", "actions": "actions", "steps": "control steps"}
+
+
+def relative_count_difference(records: list[dict], seeds, tasks, new: str, base: str, count: str) -> stats.Estimate:
+    """``new``'s relative difference to ``base`` in a per-episode ``count`` (``EPISODE_COUNTS``: decisions, actions
+    executed, control steps) on the initial states both networks of a seed solved: per seed, mean(new) / mean(base)
+    − 1 over those episodes (one value per pair of networks); the mean over seeds with its t interval (one task) or
+    the Welch average over ``tasks``. A record from before actions were counted executed one action per control
+    step (``rate``): its actions are its steps. NaN where no seed has a shared success."""
+    if count not in EPISODE_COUNTS:
+        raise ValueError(f"count: one of {sorted(EPISODE_COUNTS)}, got {count!r}")
+    per_task = []
+    for task in tasks:
+        groups = {}
+        for s in seeds:
+            a, b = (_matching(records, s, {"task": task, "column": c}) for c in (new, base))
+            if a is None or b is None or "success" not in a or "success" not in b:
+                continue
+            both = np.asarray(a["success"], bool) & np.asarray(b["success"], bool)
+            if both.any():
+                x, y = (np.asarray(r.get(count, r["steps"]), np.float64)[both] for r in (a, b))
+                groups[s] = np.asarray([x.mean() / y.mean() - 1.0])
+        per_task.append(groups)
+    if len(per_task) == 1:
+        return stats.seed_mean(per_task[0])
+    return stats.average(per_task) if all(per_task) else stats.NAN
+
+
 def check_one_network(records: list[dict], seeds, task: str, new: str, base: str) -> None:
     """Refuse to pair two evaluations of one run made on different networks (a run retrained between them):
     ``ValueError`` naming the run. Evaluations of two runs (DP vs DP+HiPolicy) are two networks by design."""

@@ -27,7 +27,8 @@ from hipolicy_jax.campaigns.campaign import (README_BEGIN, README_END, Campaign,
                                             choose_low_regime, damaged_lines, parse_until, work_off, pilot_candidates, readme_section, schedule,
                                         shard, update_readme)
 from hipolicy_jax.runs.lock import RunLockedError
-from hipolicy_jax.campaigns.report import (COUNT_BOUNDS, RATE_BOUNDS, bar_figure, changes_text, ci, cost_note,
+from hipolicy_jax.campaigns.report import (COUNT_BOUNDS, EPISODE_COUNTS, RATE_BOUNDS, bar_figure, changes_text, ci,
+                                           cost_note, relative_count_difference,
                                            finding_text, gap_trend, interval_text, leave_one_out, markdown_table,
                                            outcomes, p_text, paired, paired_bootstrap, paired_cell, relative_gain,
                                            spent_measured_text, stride_cell, task_mean, verdict_text)
@@ -103,7 +104,8 @@ class CampaignArgs(PaperArgs):
     # protocol v2's training-budget table: DP vs DP+HiPolicy (state, 100 demos) at these training step counts
     budget_steps: tuple[int, ...] = (2000, 8000, 24000)
     # only these tables' evaluations (and tables), e.g. `--only budget`: two processes can work on two tables
-    only: tuple[Literal["main", "ablation", "execution", "thresholds", "hparams", "budget"], ...] = ()
+    # (the semantics table of amendment 4 runs only when named here)
+    only: tuple[Literal["main", "ablation", "execution", "thresholds", "hparams", "budget", "semantics"], ...] = ()
     # where the runs are trained and evaluated (campaigns.cluster): inprocess = here, one after another; local /
     # slurm = one submitit job a run (its training and all its evaluations) as local processes / a SLURM job array,
     # waited for here, then the tables as in-process
@@ -151,9 +153,20 @@ class BudgetArgs(PaperArgs):
     steps: tuple[int, ...] = (2000, 8000, 24000)
 
 
+@dataclasses.dataclass(frozen=True)
+class SemanticsArgs(PaperArgs):
+    """Which kind of speed (results/PROTOCOL.md amendment 4): DP vs DP+HiPolicy (state, 100 demos, ``steps``
+    training steps) evaluated under ``rate`` and ``waypoint`` execution, with the MJX controller unlimited and
+    limited to ``controller_speed`` m/s; the same networks for every setting."""
+
+    tasks: tuple[TaskName, ...] = ("press_button", "stack_cubes")
+    steps: int = 8000
+    controller_speed: float = 0.25
+
+
 SUBCOMMANDS: dict[str, type] = {"main": MainArgs, "ablation": AblationArgs, "execution": ExecutionArgs,
                                 "thresholds": ThresholdsArgs, "hparams": HparamsArgs, "pilot": PilotArgs,
-                                "budget": BudgetArgs, "campaign": CampaignArgs}
+                                "budget": BudgetArgs, "semantics": SemanticsArgs, "campaign": CampaignArgs}
 
 
 def table_name(args: PaperArgs) -> str:
@@ -226,6 +239,8 @@ def table_run_changes(args: PaperArgs, task: str) -> list[dict]:
     if isinstance(args, BudgetArgs):
         default = BUDGETS[args.budget].train.num_steps
         return [{} if n == default else {"train.num_steps": n} for n in args.steps]
+    if isinstance(args, SemanticsArgs):
+        return [{} if args.steps == BUDGETS[args.budget].train.num_steps else {"train.num_steps": args.steps}]
     return [regime_changes(args.regime, task)]
 
 
@@ -606,6 +621,53 @@ def budget_table(args: BudgetArgs) -> str:
     return write_results(args, "Training-budget sensitivity: DP vs DP+HiPolicy", notes, table, records, figure)
 
 
+def semantics_settings(args: SemanticsArgs) -> tuple[tuple[str, float | None], ...]:
+    """The amendment's four execution settings: (semantics, controller speed limit or None)."""
+    return (("rate", None), ("waypoint", None), ("rate", args.controller_speed), ("waypoint", args.controller_speed))
+
+
+def setting_text(semantics: str, speed: float | None) -> str:
+    return semantics + ("" if speed is None else f", {speed:g} m/s")
+
+
+def semantics_columns(args: SemanticsArgs) -> list[Column]:
+    """DP and DP+HiPolicy under each setting: columns with the same runs (changes), evaluated four ways."""
+    return [Column(f"{base} ({setting_text(sem, speed)})", "state", changes, semantics=sem, controller_speed=speed)
+            for sem, speed in semantics_settings(args) for base, changes in (("DP", DP), ("DP+HiPolicy", ()))]
+
+
+SEMANTICS_READING = ("Savings: on the initial states both networks of a seed solved, DP+HiPolicy's mean decisions, "
+                     "actions executed and control steps per episode relative to DP's (−40 % = 40 % fewer), the "
+                     "mean over seeds with its 95 % t interval; the average row: Welch over the tasks. By the "
+                     "amendment's rule DP+HiPolicy saves a count when its interval lies below 0.")
+
+
+def semantics_table(args: SemanticsArgs) -> str:
+    """results/semantics.md: success, paired difference and the three counts' savings per task and setting."""
+    columns = semantics_columns(args)
+    records = collect(args, columns)
+    seeds = table_seeds(args)
+    header = ["Task", "Execution", "DP SR (%)", "DP+HiPolicy SR (%)", "DP+HiPolicy − DP (points)",
+              *(f"{what} saved (%)" for what in ("Decisions", "Actions", "Control steps"))]
+    rows = []
+    for tasks, name in [([t], t) for t in args.tasks] + ([(list(args.tasks), "**Average**")]
+                                                         if len(args.tasks) > 1 else []):
+        for sem, speed in semantics_settings(args):
+            dp, hp = (f"{base} ({setting_text(sem, speed)})" for base in ("DP", "DP+HiPolicy"))
+            rows.append([name, setting_text(sem, speed),
+                         *(ci(records, "success_rate", seeds, tasks, 100.0, column=c) for c in (dp, hp)),
+                         paired_cell(records, seeds, tasks, hp, dp),
+                         *(interval_text(relative_count_difference(records, seeds, tasks, hp, dp, count), 100.0,
+                                         signed=True) for count in EPISODE_COUNTS)])
+    notes = [f"The same networks ({args.steps:,} training steps, 100 demos, entropy-guided execution at each run's "
+             f"calibrated thresholds) under four execution settings: `rate` (one control step per action), "
+             f"`waypoint` (each action a target held until the hand is within 5 mm, at most 3 control steps per "
+             f"unit of stride, one observation per action), each with the controller unlimited and with its "
+             f"set-point limited to {args.controller_speed:g} m/s.", SEMANTICS_READING, PAIRED_NOTE_CELLS]
+    return write_results(args, "Which kind of speed: DP vs DP+HiPolicy under rate and waypoint execution", notes,
+                         markdown_table(header, rows), records)
+
+
 def thresholds_columns(args: ThresholdsArgs) -> list[Column]:
     return [Column(f"p{a:g}/p{b:g}", percentiles=(a, b)) for a, b in args.pairs] + \
         [Column("always stride 1", guided=False)]
@@ -720,7 +782,7 @@ def pilot_table(args: PilotArgs) -> str:
 
 
 COLUMNS = {"main": main_columns, "ablation": lambda args: [Column(label, "state", c) for label, c in ABLATION],
-           "budget": lambda args: list(BUDGET_COLUMNS),
+           "budget": lambda args: list(BUDGET_COLUMNS), "semantics": lambda args: semantics_columns(args),
            "execution": lambda args: list(EXECUTION), "thresholds": thresholds_columns, "hparams": hparams_columns}
 
 
@@ -742,6 +804,9 @@ def protocol_tables(args: "CampaignArgs") -> list[PaperArgs]:
     if args.budget_steps and budget_tasks and "r100" in args.regimes:  # protocol v2's training-budget table
         tables.append(BudgetArgs(**{**common, "regime": "r100", "tasks": budget_tasks, "baseline_seeds": ()},
                                  steps=tuple(args.budget_steps)))
+    semantics_tasks = tuple(t for t in SemanticsArgs.tasks if t in args.tasks)
+    if "semantics" in args.only and semantics_tasks and "r100" in args.regimes:  # amendment 4, when named
+        tables.append(SemanticsArgs(**{**common, "regime": "r100", "tasks": semantics_tasks, "baseline_seeds": ()}))
     if args.only:
         tables = [t for t in tables if table_name(t) in args.only]
     return tables
@@ -1090,7 +1155,7 @@ def campaign_table(args: "CampaignArgs") -> str:
 
 BUILDERS = {"main": main_table, "ablation": ablation_table, "execution": execution_table,
             "thresholds": thresholds_table, "hparams": hparams_table, "pilot": pilot_table,
-            "budget": budget_table, "campaign": campaign_table}
+            "budget": budget_table, "semantics": semantics_table, "campaign": campaign_table}
 
 
 
