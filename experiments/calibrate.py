@@ -14,6 +14,11 @@ so with ``--source demos`` this reproduces the calibration ``experiments.train``
 
 Writes ``RUN_DIR/calibration.json`` (read by ``experiments.evaluate``; ``--out`` to write elsewhere) and a histogram
 PNG next to it (``calibration.png``), and prints a text histogram with the thresholds marked.
+
+An external task's run (``metaworld:<task>``) rolls out through the policy server and its bridge in the bridge's
+venv (``hipolicy_jax.runs.external.calibration_rollout``): calibration episodes from initial-state seeds
+``3000000 + 1000 seed + i``, disjoint from the campaign's evaluation, each pass kept in the run dir
+(``external_eval/``), so a repeated calibration runs no episode again.
 """
 
 from __future__ import annotations
@@ -48,7 +53,9 @@ def main(args: CalibrateArgs) -> dict:
                            bins=args.bins, rule=args.rule, margin=args.margin)
     if args.rule == "success":
         base = record["baseline"]
-        print(f"stride 1 on {args.episodes} calibration episodes: success {base['success_rate']:.2f}, "
+        where = (f" (initial states {record['first_seed']}..{record['first_seed'] + args.episodes - 1})"
+                 if "first_seed" in record else "")
+        print(f"stride 1 on {args.episodes} calibration episodes{where}: success {base['success_rate']:.2f}, "
               f"{base['mean_steps']:.1f} control steps; candidates (percentiles: success, steps, intended -> "
               f"achieved stride mix):")
         for i, c in enumerate(record["candidates"]):

@@ -37,7 +37,9 @@ server's micro-batching decides them in one batched call (``--max-batch`` on the
 The result (``--out``, JSON) holds per episode: seed, success, ``steps`` (control steps: physical time; also as
 ``control_steps``), ``decisions``, ``actions`` (executed), ``clipped`` (actions the per-step limit cut, ``rate``),
 ``unreached`` (actions that ran into the bound before their target was reached, ``waypoint``), the strides
-chosen and the mean entropy; their means (``mean_steps``, ``mean_control_steps``, ``mean_decisions``,
+chosen (counts) and the mean entropy, and per decision its stride and entropy (``decision_strides``,
+``entropies``: null where there is none; what closed-loop calibration reads, ``hipolicy_jax.runs.calibrate``);
+their means (``mean_steps``, ``mean_control_steps``, ``mean_decisions``,
 ``mean_actions``), the execution settings (``semantics``, ``waypoint_tolerance``, ``waypoint_steps``,
 ``action_kinds``); and the run's manifest entries (task, run, checkpoint step, strides, inference settings), the
 command and wall-clock split (env, camera, waiting for the server).
@@ -85,12 +87,17 @@ class EpisodeResult:
     entropy: list[float] = dataclasses.field(default_factory=list)
 
     def summary(self) -> dict:
+        """The record's per-episode entry: the counts, ``strides`` as {stride: decisions}, ``mean_entropy`` over
+        the finite entropies, and per decision (``decisions`` of each) ``decision_strides`` and ``entropies``
+        (None where the server sent none or NaN: a policy with N = 1)."""
         ent = [e for e in self.entropy if np.isfinite(e)]
         return {"seed": self.seed, "success": self.success, "steps": self.steps, "decisions": self.decisions,
                 "actions": self.actions, "control_steps": self.steps, "clipped": self.clipped,
                 "unreached": self.unreached,
                 "strides": dict(sorted(collections.Counter(self.strides).items())),
-                "mean_entropy": float(np.mean(ent)) if ent else None}
+                "mean_entropy": float(np.mean(ent)) if ent else None,
+                "decision_strides": [int(s) for s in self.strides],
+                "entropies": [float(e) if np.isfinite(e) else None for e in self.entropy]}
 
 
 def _http_url(url: str) -> str:

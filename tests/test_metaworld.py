@@ -22,18 +22,9 @@ from hipolicy_jax.envs import external
 from hipolicy_jax.runs.store import read_inference
 from hipolicy_jax.runs.train import RunConfig, main
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-VENV = os.path.join(ROOT, os.environ.get("METAWORLD_VENV", ".venv-metaworld"))
-PYTHON = os.path.join(VENV, "bin", "python")
+from metaworld_venv import PYTHON, ROOT, VENV, bridge, in_bridge, needs_venv  # noqa: F401 (tests/metaworld_venv.py)
+
 TASK, EPISODES, POINTS = "assembly", 2, 64
-
-needs_venv = pytest.mark.skipif(not os.path.exists(PYTHON),
-                                reason=f"no Meta-World venv at {VENV}: run `bash scripts/setup_metaworld.sh`")
-
-
-def bridge(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    """``python -m metaworld_bridge.<args>`` in the Meta-World venv, from the repository root."""
-    return subprocess.run([PYTHON, "-m", *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout)
 
 
 @pytest.fixture(scope="module")
@@ -258,10 +249,16 @@ def test_metaworld_episodes_through_the_policy_server(served, tmp_path):
     # one env at a time, on the same seeds: the same episodes, decision for decision
     r1, one = evaluate_remote(url, tmp_path, "--episodes", "2", "--envs", "1", "--first-seed", "500")
     assert r1.returncode == 0, r1.stderr[-3000:]
-    drop = lambda eps: [{k: v for k, v in ep.items() if k != "mean_entropy"} for ep in eps]  # noqa: E731
+    drop = lambda eps: [{k: v for k, v in ep.items() if k not in ("mean_entropy", "entropies")}  # noqa: E731
+                        for ep in eps]
     assert drop(one["per_episode"]) == drop(rec["per_episode"])
     np.testing.assert_allclose([ep["mean_entropy"] for ep in one["per_episode"]],
                                [ep["mean_entropy"] for ep in rec["per_episode"]], rtol=1e-5)
+    for a, b in zip(one["per_episode"], rec["per_episode"]):  # every decision's entropy and stride (issue 58)
+        assert len(a["entropies"]) == len(a["decision_strides"]) == a["decisions"]
+        assert {int(s): a["decision_strides"].count(int(s)) for s in a["strides"]} == \
+            {int(s): n for s, n in a["strides"].items()}
+        np.testing.assert_allclose(a["entropies"], b["entropies"], rtol=1e-5)
 
 
 @needs_venv

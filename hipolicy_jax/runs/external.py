@@ -5,11 +5,16 @@ Both run the suite's bridge as a subprocess (``ExternalSuite.collect`` / ``.eval
 policy here with the project's server (``deploy``, on a free localhost port, batches of up to ``envs``) while the
 bridge runs the episodes against it. Nothing here imports the simulator.
 
+``calibration_rollout`` runs a run's closed-loop calibration episodes (``hipolicy_jax.runs.calibrate``, source
+``rollouts``): from initial states ``CALIBRATION_SEED + 1000 seed + i``, disjoint from every evaluation's, at stride 1
+(their entropies and the baseline success) or guided by given thresholds (a candidate of the success rule).
+
 ``evaluate_report`` is ``experiments.evaluate`` for such a run: the run's own execution and the same episodes
 without entropy guidance, summarised like an MJX evaluation and written to ``eval.json``.
 
 ``evaluate_run`` returns the bridge's record (``metaworld_bridge.evaluate``): per episode ``seed``, ``success``,
-``steps``, ``decisions``, ``strides`` (counts), ``mean_entropy``, plus the policy's manifest entries and timings.
+``steps``, ``decisions``, ``strides`` (counts), ``mean_entropy``, per decision ``decision_strides`` and
+``entropies``, plus the policy's manifest entries and timings.
 With ``keep`` it also keeps the record in the run dir (``external_eval/``), keyed by checkpoint and settings, and a
 later call with the same network (its parameters' fingerprint) and settings returns it without running a single
 episode: a campaign that stops halfway through a run's evaluations resumes where it stopped.
@@ -25,6 +30,7 @@ import shlex
 import subprocess
 import tempfile
 import time
+from typing import Sequence
 
 import numpy as np
 
@@ -78,14 +84,15 @@ def kept_path(run_dir: str, step: int, settings: dict) -> str:
 
 def evaluate_run(run_dir: str, *, episodes: int, first_seed: int, max_steps: int, step: int | None = None,
                  inference: InferenceConfig | None = None, envs: int = 8, timeout: float | None = None,
-                 keep: bool = False, log=print) -> dict:
+                 keep: bool = False, fields: Sequence[str] = (), log=print) -> dict:
     """Serve the run at ``run_dir`` (checkpoint ``step``, default the latest; its stored inference settings unless
     ``inference``) and evaluate it on ``episodes`` episodes of its task from initial-state seeds ``first_seed``, ...
     with its bridge, ``envs`` at a time; → the bridge's record plus ``checkpoint_step``, the network's
     ``params_sha256`` (``records.params_fingerprint``), ``wall_s`` (serving and episodes), ``cpu_s`` (the CPU
     time of this process, whose threads serve the policy, and of the bridge) and ``reused`` (True: the record
     ``keep`` kept from an earlier call with the same network and settings; its ``wall_s`` and ``cpu_s`` are that
-    call's)."""
+    call's; a kept record is reused only if every episode holds the per-episode ``fields``, so one kept before the
+    bridge recorded them is made again)."""
     from hipolicy_jax.runs.serve import run_backend
     from hipolicy_jax.deploy.server import PolicyServer, ServerConfig
 
@@ -107,7 +114,8 @@ def evaluate_run(run_dir: str, *, episodes: int, first_seed: int, max_steps: int
     path = kept_path(run_dir, backend.metadata.get("checkpoint_step"), settings) if keep else None
     kept = read_kept(path, log) if path is not None else None
     if kept is not None:
-        if kept.get("params_sha256") == fingerprint and kept.get("settings") == settings:
+        complete = all(f in e for e in kept.get("per_episode") or [{}] for f in fields)
+        if kept.get("params_sha256") == fingerprint and kept.get("settings") == settings and complete:
             log(f"[external] {name} step {kept['checkpoint_step']}: {kept['successes']}/{kept['episodes']} success "
                 f"(kept in {os.path.relpath(path)})")
             return {**kept, "reused": True}
@@ -140,6 +148,86 @@ def evaluate_run(run_dir: str, *, episodes: int, first_seed: int, max_steps: int
     log(f"[external] {name} step {record['checkpoint_step']}: {record['successes']}/{record['episodes']} success "
         f"({record['seconds']['total']:.0f} s)")
     return record
+
+
+CALIBRATION_SEED = 3_000_000
+"""First initial-state seed of an external run's closed-loop calibration episodes: training seed k calibrates on
+seeds ``CALIBRATION_SEED + 1000 k + i`` (i < 1000). Calibrating on the episodes a result is measured on would tune
+the thresholds to them, so the range is disjoint from the demos' (seeds from 0), the campaign's evaluation
+(``envs.external.EVAL_SEED`` = 1,000,000 + 1000 k + i) and its periodic DP3-metric episodes
+(``envs.external.PERIODIC_SEED`` = 2,000,000 + 1000 k + i), as the MJX tasks' ``calibrate.calibration_key`` is
+disjoint from ``eval_key``."""
+
+CALIBRATION_FIELDS = ("decision_strides", "entropies")  # what calibration reads of each episode of a bridge's record
+
+
+def calibration_seeds(seed: int, episodes: int) -> range:
+    """The initial-state seeds of training seed ``seed``'s ``episodes`` calibration episodes (``CALIBRATION_SEED``);
+    ``ValueError`` naming the field when they would leave the seed's range of 1000."""
+    if int(seed) < 0:
+        raise ValueError(f"seed: calibration seeds start at CALIBRATION_SEED + 1000 seed; need seed >= 0, got {seed}")
+    if not 1 <= episodes <= 1000:
+        raise ValueError(f"episodes: 1 to 1000 calibration episodes per seed (its range of initial states), got "
+                         f"{episodes}")
+    first = CALIBRATION_SEED + 1000 * int(seed)
+    return range(first, first + episodes)
+
+
+def calibration_rollout(run, inference: InferenceConfig, thresholds: Sequence[float] | None = None, *,
+                        episodes: int, seed: int, envs: int = 8, log=print) -> dict:
+    """``run``'s (a ``store.Run`` or a run dir, its latest checkpoint) ``episodes`` closed-loop calibration
+    episodes (``calibration_seeds(seed, episodes)``) through its bridge, served with ``inference`` (its sampler,
+    execution and semantics): ``thresholds`` None at stride 1 (``entropy_guided=False``: every decision's entropy,
+    what the thresholds are calibrated on), else guided by those M+1 (or M−1 inner) thresholds. Kept in the run dir
+    (``evaluate_run(keep=True)``), so a repeated calibration runs no episode again. → {``success_rate``,
+    ``mean_steps`` (control steps), ``entropies`` (D,) float64 (NaN where a decision had none), ``strides`` (D,)
+    int (D: every decision of every episode, episode by episode), ``decisions`` (E,) int, ``seeds`` (E,),
+    ``record`` (the bridge's)}."""
+    from hipolicy_jax.runs.store import load_run
+
+    seeds = calibration_seeds(seed, episodes)
+    run = load_run(run) if isinstance(run, str) else run
+    external.check_name(run.task)
+    suite = external.SUITES[run.task.partition(":")[0]]
+    m = run.policy.cfg.chunk.num_freqs
+    if thresholds is None:  # stride 1 ignores the thresholds: none are needed, even before any calibration
+        inference = dataclasses.replace(inference, entropy_guided=False,
+                                        thresholds=inference.thresholds or tuple(float(i) for i in range(m - 1)))
+    else:
+        inference = dataclasses.replace(inference, entropy_guided=True,
+                                        thresholds=tuple(float(t) for t in thresholds))
+    record = evaluate_run(run.run_dir, episodes=episodes, first_seed=seeds[0], max_steps=suite.eval_max_steps,
+                          step=int(run.policy.step), inference=inference, envs=envs, keep=True,
+                          fields=CALIBRATION_FIELDS, log=log)
+    return rollout_arrays(record)
+
+
+def rollout_arrays(record: dict) -> dict:
+    """``calibration_rollout``'s arrays from a bridge's record; ``ValueError`` naming the field when an episode's
+    per-decision lists do not hold one entry per decision."""
+    eps = record["per_episode"]
+    for e in eps:
+        for f in CALIBRATION_FIELDS:
+            if f not in e:
+                raise ValueError(f"per_episode.{f}: missing from the bridge's record (seed {e['seed']}); the bridge "
+                                 f"predates per-decision records")
+            if len(e[f]) != e["decisions"]:
+                raise ValueError(f"per_episode.{f}: {len(e[f])} entries for {e['decisions']} decisions (seed "
+                                 f"{e['seed']})")
+    entropies = [np.nan if h is None else float(h) for e in eps for h in e["entropies"]]
+    return {"success_rate": float(np.mean([bool(e["success"]) for e in eps])),
+            "mean_steps": float(np.mean([e["steps"] for e in eps])),
+            "entropies": np.asarray(entropies, np.float64),
+            "strides": np.asarray([s for e in eps for s in e["decision_strides"]], np.int64),
+            "decisions": np.asarray([e["decisions"] for e in eps], np.int64),
+            "seeds": [int(e["seed"]) for e in eps], "record": record}
+
+
+def closed_loop_entropies(run, inference: InferenceConfig, *, episodes: int, seed: int, envs: int = 8,
+                          log=print) -> np.ndarray:
+    """(D,) the entropies of every decision of ``run``'s ``episodes`` calibration episodes at stride 1
+    (``calibration_rollout``; NaN where a decision had none)."""
+    return calibration_rollout(run, inference, episodes=episodes, seed=seed, envs=envs, log=log)["entropies"]
 
 
 def read_kept(path: str, log=print) -> dict | None:
@@ -229,5 +317,6 @@ def evaluate_report(run_dir: str, inference: InferenceConfig, *, episodes: int, 
     return report
 
 
-__all__ = ["check_bridge", "collect_demos", "evaluate_report", "evaluate_run", "external_summary", "kept_path",
-           "read_kept", "summary"]
+__all__ = ["CALIBRATION_FIELDS", "CALIBRATION_SEED", "calibration_rollout", "calibration_seeds", "check_bridge",
+           "closed_loop_entropies", "collect_demos", "evaluate_report", "evaluate_run", "external_summary",
+           "kept_path", "read_kept", "rollout_arrays", "summary"]
