@@ -127,3 +127,19 @@ def test_readme_metaworld_recipe_counts():
     every = [sum(tasks[t]["delta"][s]["successes"] for t in tasks) for s in "23"]
     assert (f"the scripted expert keeps {summed[0]} and {summed[1]} of 200 successes at strides 2 and 3; taking "
             f"every s-th displacement, as runs before 2026-12-07 did, it keeps {every[0]} and {every[1]}") in text
+
+
+@pytest.mark.skipif(not os.path.exists(MJX), reason="MJX expert record not committed yet")
+def test_mjx_text_claims():
+    with open(MJX) as f:
+        rows = json.load(f)["rows"]
+    cell = {(r["task"], r["controller_speed"], r["stride"], r["semantics"]): r for r in rows}
+    for task in ("stack_cubes", "pick_place"):  # fail under rate, succeed under waypoint at stride 3, 0.25 m/s
+        assert cell[(task, 0.25, 3, "rate")]["success_rate"] <= 0.051
+        way = cell[(task, 0.25, 3, "waypoint")]
+        assert way["success_rate"] == 1.0 and way["mean_steps"] > way["mean_actions"]
+        ratio = way["mean_steps"] / cell[(task, 0.25, 1, "waypoint")]["mean_steps"]
+        assert 0.45 <= ratio <= 0.6  # "about half the stride-1 control steps"
+    for (task, speed, stride, sem), r in cell.items():  # unlimited: waypoint within a few steps of rate
+        if speed is None and sem == "waypoint":
+            assert abs(r["mean_steps"] - cell[(task, None, stride, "rate")]["mean_steps"]) <= 8.5
