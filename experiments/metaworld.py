@@ -11,6 +11,14 @@ with the bridge's env side (``metaworld_bridge.evaluate``, openpi's client):
   comparisons, and DP3's metric (mean of the 5 best of 10 periodic 20-episode evaluations) beside DP3's published
   numbers. ``--until HH:MM`` starts only the jobs estimated to end before then; ``--plan`` writes what is left;
   ``--from-records`` only rebuilds the table.
+- ``pilot2`` (amendment 2): DP (state, seed 0) on bin-picking and hand-insert (absolute targets), T_task steps at batch
+  128, checkpoints at T/4, T/2, 3T/4, T evaluated under ``waypoint`` (500-step limit); the plateau rule's f, the
+  measured rates and the budget rule → ``results/metaworld/amendment2/pilot2.md``, ``pilot_choice.json``,
+  ``t_task.json``.
+- ``amendment2``: DP and DP+HiPolicy (state, seeds 0, 1, 2, f·T_task steps at batch 128) on the arm's tasks
+  (``--arm a``: absolute targets; ``--arm b``: summed deltas), each network evaluated under ``waypoint`` at
+  closed-loop thresholds and the secondary settings → ``results/metaworld/amendment2/amendment2.md``; ``--plan``,
+  ``--until``, ``--from-records`` as ``main``.
 
 Runs go to ``--runs/metaworld/metaworld_<task>/<obs>/<variant>/seed<k>``, records (committed) to
 ``--records/metaworld/...``; a campaign continues where its records end.
@@ -18,12 +26,23 @@ Runs go to ``--runs/metaworld/metaworld_<task>/<obs>/<variant>/seed<k>``, record
     python -m experiments.metaworld pilot
     python -m experiments.metaworld main --until 18:00
     python -m experiments.metaworld main --from-records
+    python -m experiments.metaworld pilot2
+    python -m experiments.metaworld amendment2 --plan
+    python -m experiments.metaworld amendment2 --until 18:00
 """
 
 from __future__ import annotations
 
-from hipolicy_jax.campaigns.metaworld import SUBCOMMANDS, build
+from hipolicy_jax.campaigns import metaworld, metaworld_amendment2
 from hipolicy_jax.runs.cli import run_table_cli, table_cli
+
+SUBCOMMANDS = {**metaworld.SUBCOMMANDS, **metaworld_amendment2.SUBCOMMANDS}
+BUILDERS = {**metaworld.BUILDERS, **metaworld_amendment2.BUILDERS}
+
+
+def build(args) -> str:
+    return BUILDERS[type(args).TABLE](args)
+
 
 # parse_args(argv) -> the table's args; main(args) -> builds and prints it, returns its markdown file's path
 parse_args, main = table_cli(SUBCOMMANDS, build, __doc__, "metaworld")

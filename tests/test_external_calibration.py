@@ -260,3 +260,24 @@ def test_external_closed_loop_calibration_end_to_end(tmp_path, monkeypatch, caps
     res = external.calibration_rollout(run, cfg.inference, episodes=2, seed=0, envs=2, log=logs.append)
     assert res["record"]["reused"] is False and len(res["entropies"]) == sum(res["decisions"])
     np.testing.assert_allclose(res["entropies"], h, rtol=1e-5)
+
+
+def test_calibration_episodes_run_at_the_given_step_limit(tmp_path, monkeypatch):
+    """``calibrate_run(max_steps=...)`` reaches the bridge's episodes (a campaign column evaluating at Meta-World's
+    500 steps calibrates at 500, not at the suite's 200); None keeps the suite's limit."""
+    limits = []
+
+    def fake_evaluate_run(run_dir, *, episodes, first_seed, max_steps, **kw):
+        limits.append(max_steps)
+        eps = [{"seed": first_seed + i, "success": True, "steps": 10, "decisions": 2, "actions": 16,
+                "entropies": [0.1 * i, 0.2], "decision_strides": [1, 1]} for i in range(episodes)]
+        return {"per_episode": eps}
+
+    monkeypatch.setattr(external, "evaluate_run", fake_evaluate_run)
+    run = fake_run(tmp_path)
+    record = calib.calibrate_run(run, InferenceConfig(num_samples=4), "rollouts", episodes=3, seed=0, max_steps=500,
+                                 out=str(tmp_path / "c.json"))
+    assert limits == [500] and record["max_steps"] == 500
+    calib.calibrate_run(run, InferenceConfig(num_samples=4), "rollouts", episodes=3, seed=0,
+                        out=str(tmp_path / "d.json"))
+    assert limits[-1] == envs_external.SUITES["metaworld-target"].eval_max_steps

@@ -73,6 +73,13 @@ METAWORLD_STEPS: int | None = 4000  # the pilot of 2026-12-05: T = 8000, rule 1 
 # METAWORLD_POINTCLOUD_TASKS (None: none yet).
 METAWORLD_STATE_TASKS: int | None = 10  # the pilot entry of 2026-12-05 (rule 1)
 METAWORLD_POINTCLOUD_TASKS: int | None = 0  # the pilot entry of 2026-12-05 (rule 2: none fits)
+# Amendment 2 (results/metaworld/PROTOCOL.md; campaigns.metaworld_amendment2), fixed by the dated entry that follows
+# its pilot (`python -m experiments.metaworld pilot2`); None until then (its main runs refuse to start before):
+# the plateau rule's fraction f of T_task, the budget rule's arm-A task count K (the first K of its five tasks) and
+# arm B's task count (the first of arm A's list that fit 20 CPU-hours).
+METAWORLD_A2_FRACTION: float | None = None
+METAWORLD_A2_TASKS: int | None = None
+METAWORLD_A2_B_TASKS: int | None = None
 # The Meta-World pilot: DP, seed 0, 8000 steps with checkpoints at 1000 / 2000 / 4000 / 8000 evaluated.
 METAWORLD_PILOT = {"train.num_steps": 8000, "train.ckpt_every": 1000}
 METAWORLD_PILOT_STEPS = (1000, 2000, 4000, 8000)
@@ -99,9 +106,22 @@ DP = (("chunk.strides", (1,)),)  # single frequency: Diffusion Policy
 _ABBREV = {"chunk.obs_horizon": "lh", "chunk.chunk_len": "lc", "model.condition": "cond-", "objective": ""}
 
 
+KIND_LETTERS = {"absolute": "a", "delta": "d"}
+
+
+def kinds_name(kinds) -> str:
+    """``chunk.action_kinds`` in a run-dir name: 'kinds-ddda' for (delta, delta, delta, absolute)."""
+    return "kinds-" + "".join(KIND_LETTERS[k] for k in kinds)
+
+
 def variant_name(changes: tuple[tuple[str, Any], ...]) -> str:
     """Canonical run-dir name of a set of config changes: 'hipolicy' (none), 'dp' (one stride), else e.g.
-    'lh1', 'cond-low', 'nofusion', 's1-2', 'flow' (the flow-matching head)."""
+    'lh1', 'cond-low', 'nofusion', 's1-2', 'flow' (the flow-matching head); declared action kinds
+    (``chunk.action_kinds``) follow the rest's name: 'dp_kinds-aaaa', 'hipolicy_kinds-ddda'."""
+    kinds = [v for k, v in changes if k == "chunk.action_kinds"]
+    if kinds:
+        rest = tuple((k, v) for k, v in changes if k != "chunk.action_kinds")
+        return f"{variant_name(rest)}_{kinds_name(kinds[0])}"
     changes = tuple(sorted(changes))
     if not changes:
         return "hipolicy"

@@ -68,7 +68,14 @@ class Column(NamedTuple):
     ``percentiles``: thresholds at these percentiles of the run's held-out demo entropies instead of its
     ``calibration.json``; ``guided=False``: always the highest frequency; ``execution``: the execution strategy
     (``InferenceConfig.execution``); ``semantics`` / ``controller_speed``: how each action executes and the MJX
-    controller's speed limit (``InferenceConfig``; columns that differ only in these evaluate the same networks)."""
+    controller's speed limit (``InferenceConfig``; columns that differ only in these evaluate the same networks);
+    ``calibration``: where a guided multi-stride policy's thresholds come from: ``demos`` (the run's
+    ``calibration.json``, made by training from its held-out demo, or ``percentiles`` of those entropies),
+    ``rollouts`` (the percentiles of the entropies of the network's own stride-1 decisions on
+    ``CLOSED_LOOP_EPISODES`` closed-loop calibration episodes, disjoint from the evaluation's, rolled out with the
+    column's execution) or ``success`` (the success-constrained rule on those episodes: the most aggressive
+    candidate of ``calibration.percentile_ladder`` within ``SUCCESS_MARGIN`` of stride 1's success);
+    ``max_steps``: the episodes' step limit (control steps; None: the task's own, ``envs.episode_limit``)."""
 
     label: str
     obs_type: str = "state"
@@ -78,6 +85,26 @@ class Column(NamedTuple):
     execution: str = "chunk"
     semantics: str = "rate"
     controller_speed: float | None = None
+    calibration: str = "demos"
+    max_steps: int | None = None
+
+
+CALIBRATIONS = ("demos", "rollouts", "success")  # Column.calibration's values
+CLOSED_LOOP_EPISODES = 50  # calibration episodes of a closed-loop column (results/metaworld/PROTOCOL.md amendment 2)
+SUCCESS_MARGIN = 0.05  # the success-constrained rule's margin (amendment 2)
+
+
+def check_column(col: Column) -> None:
+    """One-line ``ValueError`` naming the field of a column whose threshold source or step limit is not valid."""
+    if col.calibration not in CALIBRATIONS:
+        raise ValueError(f"column {col.label}: calibration must be one of {list(CALIBRATIONS)}, got "
+                         f"{col.calibration!r}")
+    if col.calibration == "success" and col.percentiles is not None:
+        raise ValueError(f"column {col.label}: calibration 'success' chooses its own percentiles; leave percentiles "
+                         f"None, got {list(col.percentiles)}")
+    if col.max_steps is not None and int(col.max_steps) < 1:
+        raise ValueError(f"column {col.label}: max_steps must be None (the task's limit) or >= 1, got "
+                         f"{col.max_steps}")
 
 
 def record_path(records: str, runs: str, cfg: RunConfig) -> str:
@@ -85,8 +112,10 @@ def record_path(records: str, runs: str, cfg: RunConfig) -> str:
     return os.path.join(records, os.path.relpath(cfg.out_dir(), runs)) + ".json"
 
 
-def evaluation_key(inference: InferenceConfig, col: Column, episodes: int, eval_seed: int) -> str:
-    """The canonical id of one evaluation of a run (what its numbers depend on besides the run)."""
+def evaluation_key(inference: InferenceConfig, col: Column, episodes: int, eval_seed: int,
+                   calibration_episodes: int = CLOSED_LOOP_EPISODES) -> str:
+    """The canonical id of one evaluation of a run (what its numbers depend on besides the run; a closed-loop
+    column's thresholds also on its ``calibration_episodes``)."""
     settings = {"num_samples": inference.num_samples, "sampler": inference.sampler,
                 "num_steps": inference.num_steps, "execution": col.execution,
                 "te_decay": inference.te_decay if col.execution == "te" else None, "guided": col.guided,
@@ -96,6 +125,12 @@ def evaluation_key(inference: InferenceConfig, col: Column, episodes: int, eval_
         settings.update(semantics=inference.semantics, controller_speed=inference.controller_speed,
                         waypoint_tolerance=inference.waypoint_tolerance if inference.semantics == "waypoint" else None,
                         waypoint_steps=inference.waypoint_steps if inference.semantics == "waypoint" else None)
+    if col.calibration != "demos":  # the demos' thresholds (every older column) keep their keys as they were
+        settings["calibration"] = {"source": "rollouts", "rule": "success" if col.calibration == "success"
+                                   else "percentiles", "episodes": int(calibration_episodes),
+                                   **({"margin": SUCCESS_MARGIN} if col.calibration == "success" else {})}
+    if col.max_steps is not None:  # the task's own limit (every older column) keeps its key as it was
+        settings["max_steps"] = int(col.max_steps)
     return json.dumps(settings, sort_keys=True)
 
 
@@ -123,6 +158,8 @@ class Campaign:
         self.inference = BUDGETS[budget].inference
         self.episodes = BUDGETS[budget].eval.episodes if episodes is None else episodes
         self.from_records, self.progress = from_records, progress
+        # closed-loop calibration episodes (Column.calibration rollouts / success): the protocol's 50; a smoke run's 2
+        self.calibration_episodes = 2 if budget == "smoke" else CLOSED_LOOP_EPISODES
         self._evaluators: dict = {}
         self._entropies: dict = {}
 
@@ -136,10 +173,28 @@ class Campaign:
             self._evaluators[ident] = make_evaluator(run, inference)
         return self._evaluators[ident]
 
-    def _thresholds(self, run: Run, col: Column, ev: Evaluator) -> tuple[float, ...] | None:
+    def _thresholds(self, run: Run, col: Column, ev: Evaluator, seed: int | None = None,
+                    inference: InferenceConfig | None = None) -> tuple[float, ...] | None:
         m = run.policy.cfg.chunk.num_freqs
         if m == 1 or not col.guided:
             return None
+        check_column(col)
+        if col.calibration != "demos":  # closed loop, in the column's execution (MJX: one compiled rollout)
+            from hipolicy_jax.runs.calibrate import success_constrained
+
+            inference = inference or self._key(col, run.seed if seed is None else seed)[0]
+            ident = (run.run_dir, col.calibration, col.percentiles, inference.rollout_settings())
+            if ident not in self._entropies:
+                if col.calibration == "success":
+                    self._entropies[ident] = success_constrained(
+                        run, inference, episodes=self.calibration_episodes, seed=seed, margin=SUCCESS_MARGIN,
+                        evaluator=ev)["thresholds"]
+                else:
+                    entropies = run_entropies(run, inference, "rollouts", episodes=self.calibration_episodes,
+                                              seed=seed, evaluator=ev)
+                    self._entropies[ident] = calibration.calibrate_thresholds(
+                        entropies, m, col.percentiles or inference.percentiles)
+            return tuple(self._entropies[ident])
         calib = calibration.read_calibration(run.run_dir)
         if col.percentiles is None:
             return calibration.resolve_thresholds(self.inference, m, calib)[0]
@@ -161,7 +216,7 @@ class Campaign:
     def _key(self, col: Column, seed: int) -> tuple[InferenceConfig, str]:
         inference = dataclasses.replace(self.inference, execution=col.execution, semantics=col.semantics,
                                         controller_speed=col.controller_speed)
-        return inference, evaluation_key(inference, col, self.episodes, seed)
+        return inference, evaluation_key(inference, col, self.episodes, seed, self.calibration_episodes)
 
     def evaluate(self, task: str, col: Column, seed: int, run_changes: dict | None = None,
                  periodic: Periodic | None = None) -> dict | None:
@@ -195,7 +250,7 @@ class Campaign:
                 evaluation = self._external_evaluation(run, col, seed, inference, key, periodic)
             else:
                 ev = self._evaluator(run, inference)
-                thresholds = self._thresholds(run, col, ev)
+                thresholds = self._thresholds(run, col, ev, seed, inference)
                 thresholds_json = (None if thresholds is None
                                    else jsonio.loads(jsonio.dumps([float(t) for t in thresholds])))
                 same = _same_evaluation(record.get("evaluations", {}), json.loads(key), thresholds_json)
@@ -239,16 +294,38 @@ class Campaign:
 
     def _external_evaluation(self, run: Run, col: Column, seed: int, inference: InferenceConfig, key: str,
                              periodic: Periodic | None) -> dict:
-        """An external task's evaluation: the final network on the budget's episodes, then the periodic ones."""
+        """An external task's evaluation: the final network on the budget's episodes (at the column's step limit,
+        its thresholds from the column's ``calibration``: a closed-loop one made first, once per network, and kept
+        in the run dir), then the periodic ones (none when ``periodic.episodes`` is 0)."""
         from hipolicy_jax.runs.external import evaluate_run
 
-        if col.execution != "chunk" or col.percentiles is not None or not col.guided:
+        check_column(col)
+        if col.execution != "chunk" or (col.percentiles is not None and col.calibration == "demos"):
             raise ValueError(f"column {col.label}: external tasks are evaluated with whole-chunk execution at the "
                              f"run's calibrated thresholds only")
         m = run.policy.cfg.chunk.num_freqs
-        thresholds = (None if m == 1 else calibration.resolve_thresholds(
-            self.inference, m, calibration.read_calibration(run.run_dir))[0])
-        max_steps = envs.episode_limit(run.task)
+        max_steps = int(col.max_steps) if col.max_steps is not None else envs.episode_limit(run.task)
+        calib_summary, calib_s, calib_cpu_s = None, 0.0, 0.0
+        if m == 1:
+            thresholds = None
+        elif not col.guided:  # always stride 1: the thresholds are never read
+            inference = dataclasses.replace(inference, entropy_guided=False)
+            thresholds = None
+            calib_summary = {"source": "none", "intended_mix": {str(s): float(s == min(run.policy.cfg.chunk.strides))
+                                                                for s in run.policy.cfg.chunk.strides}}
+        elif col.calibration == "demos":
+            calib = calibration.read_calibration(run.run_dir)
+            thresholds = calibration.resolve_thresholds(self.inference, m, calib)[0]
+            percentiles = (calib or {}).get("percentiles") or calibration.effective_percentiles(m, None)
+            calib_summary = {"source": "demos", "rule": "percentiles", "percentiles": list(percentiles),
+                             "intended_mix": calibration.intended_mix(percentiles, run.policy.cfg.chunk.strides)}
+        else:
+            t0, c0 = time.perf_counter(), cpu_seconds()
+            calib_summary = self._closed_loop_calibration(run, col, seed, inference, max_steps)
+            if not calib_summary.pop("reused"):
+                calib_s, calib_cpu_s = time.perf_counter() - t0, cpu_seconds() - c0
+            thresholds = calibration.inner_to_full(calib_summary["thresholds"], m, "calibration")
+            inference = dataclasses.replace(inference, thresholds=tuple(float(t) for t in thresholds[1:-1]))
         first = EXTERNAL_EVAL_SEED + 1000 * seed
         # kept in the run dir as they finish: an interrupted evaluation resumes at the next checkpoint's
         rec = evaluate_run(run.run_dir, episodes=self.episodes, first_seed=first, max_steps=max_steps,
@@ -259,12 +336,19 @@ class Campaign:
                       "steps": [int(e["steps"]) for e in rec["per_episode"]],
                       "decisions": [int(e["decisions"]) for e in rec["per_episode"]],
                       "actions": [int(e.get("actions", e["steps"])) for e in rec["per_episode"]],
-                      "first_seed": first, "max_steps": max_steps, "eval_s": rec["wall_s"],
-                      "eval_cpu_s": rec.get("cpu_s"), "cpu_cores": cpu_cores(), "timing": rec["seconds"]}
+                      # actions the bridge's per-step bound cut (``rate``): where its record counts them
+                      **({"clipped": [int(e["clipped"]) for e in rec["per_episode"]]}
+                         if rec["per_episode"] and all("clipped" in e for e in rec["per_episode"]) else {}),
+                      "first_seed": first, "max_steps": max_steps,
+                      "eval_s": rec["wall_s"] + calib_s,
+                      "eval_cpu_s": None if rec.get("cpu_s") is None else rec["cpu_s"] + calib_cpu_s,
+                      "cpu_cores": cpu_cores(), "timing": rec["seconds"]}
+        if calib_summary is not None:  # where the thresholds came from, and what the calibration cost here
+            evaluation["calibration"] = {**calib_summary, "calibration_s": calib_s, "calibration_cpu_s": calib_cpu_s}
         b = BUDGETS[self.budget]
         periodic = periodic or (Periodic(b.periodic_episodes, EXTERNAL_PERIODIC_SEED) if b.periodic_episodes
                                 else None)
-        if periodic is not None:
+        if periodic is not None and periodic.episodes > 0:
             rows = []
             every = int(run.policy.meta["train"]["ckpt_every"])
             for step in checkpoint_steps(run.run_dir):  # the periodic ones (not step 1's nor an interrupt's)
@@ -291,6 +375,40 @@ class Campaign:
         parts = [evaluation["eval_cpu_s"], *(r["eval_cpu_s"] for r in checkpoints)]
         evaluation["eval_cpu_s"] = None if None in parts else sum(parts)
         return evaluation
+
+    def _closed_loop_calibration(self, run: Run, col: Column, seed: int, inference: InferenceConfig,
+                                 max_steps: int) -> dict:
+        """The column's closed-loop thresholds for this network (``runs.calibrate.calibrate_run``, source
+        ``rollouts``: ``calibration_episodes`` episodes from the bridge's calibration seeds, in the column's
+        semantics): made once per network and kept in the run dir as ``calibration_<rule>_<semantics>.json`` (the
+        training's ``calibration.json`` stays as it is), with the network's fingerprint; a later evaluation of the
+        same network reuses it (``reused`` True). → the summary a record keeps: source, rule, percentiles,
+        thresholds, episodes, first seed, intended mix (and the success rule's candidates, choice, baseline)."""
+        from hipolicy_jax.runs import calibrate as calibrate_lib
+        from hipolicy_jax.runs.records import params_fingerprint
+
+        rule = "success" if col.calibration == "success" else "percentiles"
+        path = os.path.join(run.run_dir, f"calibration_{rule}_{inference.semantics}.json")
+        fingerprint = params_fingerprint(run.policy.params)
+        wanted = {"params_sha256": fingerprint, "semantics": inference.semantics,
+                  "episodes": self.calibration_episodes, "max_steps": max_steps, "seed": seed,
+                  "margin": SUCCESS_MARGIN if rule == "success" else None,
+                  "percentiles_asked": None if col.percentiles is None else [float(p) for p in col.percentiles]}
+        kept = read_json(path) if os.path.exists(path) else {}
+        reused = bool(kept) and all(kept.get(k) == v for k, v in wanted.items())
+        if not reused:
+            calib_inference = dataclasses.replace(inference, thresholds=None, entropy_guided=True,
+                                                  percentiles=col.percentiles or inference.percentiles)
+            # the evaluation's step limit reaches the calibration episodes too
+            record = calibrate_lib.calibrate_run(run, calib_inference, source="rollouts", rule=rule,
+                                                 episodes=self.calibration_episodes, seed=seed, margin=SUCCESS_MARGIN,
+                                                 out=path, max_steps=max_steps)
+            kept = {k: v for k, v in record.items() if k not in ("entropies", "path")}
+            kept = jsonio.loads(jsonio.dumps({**kept, **wanted}))
+            write_json(path, kept)
+        keys = ("source", "rule", "percentiles", "thresholds", "episodes", "first_seed", "intended_mix",
+                "candidates", "chosen", "margin", "baseline", "num_windows", "max_steps")
+        return {"file": os.path.basename(path), **{k: kept[k] for k in keys if k in kept}, "reused": reused}
 
 
 def checkpoint_steps(run_dir: str) -> list[int]:
@@ -728,7 +846,9 @@ def choose_low_regime(tried: list[tuple[dict, float]], low: float = 0.15, high: 
     return min(tried, key=lambda cs: abs(cs[1] - (low + high) / 2))[0], False
 
 
-__all__ = ["EXTERNAL_EVAL_SEED", "EXTERNAL_PERIODIC_SEED", "NOTHING_SPENT", "Periodic", "checkpoint_steps", "dp3_metric",
+__all__ = ["CALIBRATIONS", "CLOSED_LOOP_EPISODES", "SUCCESS_MARGIN", "check_column",
+           "EXTERNAL_EVAL_SEED",
+           "EXTERNAL_PERIODIC_SEED", "NOTHING_SPENT", "Periodic", "checkpoint_steps", "dp3_metric",
            "external_summary", "README_BEGIN", "README_END", "Campaign", "Column", "choose_low_regime", "evaluation_key",
            "damaged_lines", "load_record_file", "pilot_candidates", "readme_section", "record_path", "report_damaged",
            "run_summary", "update_readme", "work_off"]

@@ -49,11 +49,14 @@ class ClosedLoop(NamedTuple):
 
 
 def closed_loop(run: Run, inference: InferenceConfig, *, episodes: int = 20, seed: int | None = None,
-                evaluator=None, envs: int = 8, log=print) -> Callable[[Sequence[float] | None], ClosedLoop]:
+                evaluator=None, envs: int = 8, log=print,
+                max_steps: int | None = None) -> Callable[[Sequence[float] | None], ClosedLoop]:
     """``evaluate_thresholds(thresholds) -> ClosedLoop`` on the run's ``episodes`` calibration episodes (the same
     initial states every call): thresholds None rolls out at stride 1, M+1 thresholds with entropy guidance. An MJX
     task rolls out in ``evaluator`` (default ``make_evaluator``) from ``calibration_key(seed)``; an external task
-    through its bridge (``external.calibration_rollout``, ``envs`` episodes at a time, kept in the run dir)."""
+    through its bridge (``external.calibration_rollout``, ``envs`` episodes at a time, kept in the run dir).
+    ``max_steps``: the episodes' step limit in control steps (None: the task's own), the evaluation's they calibrate
+    for."""
     seed = run.seed if seed is None else seed
     if external.is_external(run.task):
         from hipolicy_jax.runs import external as bridge
@@ -62,11 +65,11 @@ def closed_loop(run: Run, inference: InferenceConfig, *, episodes: int = 20, see
 
         def evaluate_thresholds(thresholds):
             r = bridge.calibration_rollout(run, inference, thresholds, episodes=episodes, seed=seed, envs=envs,
-                                           log=log)
+                                           log=log, max_steps=max_steps)
             return ClosedLoop(r["success_rate"], r["mean_steps"], r["entropies"], r["strides"],
                               np.ones(r["strides"].shape, bool))
         return evaluate_thresholds
-    ev = evaluator or make_evaluator(run, inference)
+    ev = evaluator or make_evaluator(run, inference, max_steps=max_steps)
     p, key = run.policy, calibration_key(seed)
 
     def evaluate_thresholds(thresholds):
@@ -79,7 +82,7 @@ def closed_loop(run: Run, inference: InferenceConfig, *, episodes: int = 20, see
 
 def run_entropies(run: Run, inference: InferenceConfig, source: Literal["demos", "rollouts"] = "demos", *,
                   episodes: int = 20, seed: int | None = None, evaluator=None, envs: int = 8,
-                  log=print) -> np.ndarray:
+                  log=print, max_steps: int | None = None) -> np.ndarray:
     """Action entropies of the run's held-out demo windows (``inference.calib_windows`` of them) or of every replan
     of ``episodes`` closed-loop episodes at the highest frequency (``closed_loop``: MJX or external)."""
     seed = run.seed if seed is None else seed
@@ -92,13 +95,14 @@ def run_entropies(run: Run, inference: InferenceConfig, source: Literal["demos",
         return ev.measure_entropies(p.params, p.normalizer, heldout_dataset(run), run_keys(seed)["eval"])
     if source != "rollouts":
         raise ValueError(f"source: must be 'demos' or 'rollouts', got {source!r}")
-    base = closed_loop(run, inference, episodes=episodes, seed=seed, evaluator=evaluator, envs=envs, log=log)(None)
+    base = closed_loop(run, inference, episodes=episodes, seed=seed, evaluator=evaluator, envs=envs, log=log,
+                       max_steps=max_steps)(None)
     return base.entropy[base.valid]
 
 
 def success_constrained(run: Run, inference: InferenceConfig, *, episodes: int = 20, seed: int | None = None,
                         margin: float = 0.05, ladder: Sequence[Sequence[float]] | None = None,
-                        evaluator=None, envs: int = 8, log=print) -> dict:
+                        evaluator=None, envs: int = 8, log=print, max_steps: int | None = None) -> dict:
     """The success-constrained rule on ``episodes`` calibration episodes (``closed_loop``): stride-1 rollouts
     give the entropies and the baseline success; each ``ladder`` candidate (default ``percentile_ladder``) is rolled
     out with entropy guidance from the same initial states. → {entropies, baseline, candidates, chosen (index),
@@ -113,7 +117,7 @@ def success_constrained(run: Run, inference: InferenceConfig, *, episodes: int =
     for q in ladder:
         calibration.intended_mix(q, cfg.chunk.strides)  # ValueError naming the percentiles before any episode runs
     evaluate_thresholds = closed_loop(run, inference, episodes=episodes, seed=seed, evaluator=evaluator, envs=envs,
-                                      log=log)
+                                      log=log, max_steps=max_steps)
     base = evaluate_thresholds(None)
     entropies = base.entropy[base.valid]
     candidates = []
@@ -134,12 +138,14 @@ def success_constrained(run: Run, inference: InferenceConfig, *, episodes: int =
 def calibrate_run(run: Run, inference: InferenceConfig, source: Literal["demos", "rollouts"] = "demos", *,
                   episodes: int = 20, seed: int | None = None, out: str = "", bins: int = 24,
                   rule: Literal["percentiles", "success"] = "percentiles", margin: float = 0.05,
-                  ladder: Sequence[Sequence[float]] | None = None, envs: int = 8, log=print) -> dict:
+                  ladder: Sequence[Sequence[float]] | None = None, envs: int = 8, log=print,
+                  max_steps: int | None = None) -> dict:
     """Thresholds by ``rule`` (the module docstring): at ``inference.percentiles`` of ``run_entropies``, or the
     success-constrained choice (``success_constrained``; closed-loop ``source='rollouts'`` only); writes the
     calibration record to ``out`` (default ``<run>/calibration.json``) and a histogram PNG next to it; → the record
     (+ ``entropies``). A closed-loop record also names its ``episodes`` and, for an external task, the first of
-    their initial-state seeds (``first_seed``); ``envs``: an external task's episodes at a time."""
+    their initial-state seeds (``first_seed``); ``envs``: an external task's episodes at a time; ``max_steps``: the
+    closed-loop episodes' step limit (None: the task's own; a record names a given one)."""
     cfg = run.policy.cfg
     m = cfg.chunk.num_freqs
     seed = run.seed if seed is None else seed
@@ -149,18 +155,21 @@ def calibrate_run(run: Run, inference: InferenceConfig, source: Literal["demos",
             raise ValueError(f"rule: 'success' rolls the candidates out in closed loop; it needs source "
                              f"'rollouts', got {source!r}")
         chosen = success_constrained(run, inference, episodes=episodes, seed=seed, margin=margin, ladder=ladder,
-                                     envs=envs, log=log)
+                                     envs=envs, log=log, max_steps=max_steps)
         entropies, thresholds, percentiles = chosen["entropies"], chosen["thresholds"], chosen["percentiles"]
         inference = dataclasses.replace(inference, percentiles=percentiles)
         extra = {k: chosen[k] for k in ("candidates", "chosen", "margin", "baseline")}
     elif rule == "percentiles":
         percentiles = calibration.effective_percentiles(m, inference.percentiles) if m > 1 else ()
-        entropies = run_entropies(run, inference, source, episodes=episodes, seed=seed, envs=envs, log=log)
+        entropies = run_entropies(run, inference, source, episodes=episodes, seed=seed, envs=envs, log=log,
+                                  max_steps=max_steps)
         thresholds = calibration.calibrate_thresholds(entropies, m, percentiles or None)
     else:
         raise ValueError(f"rule: must be 'percentiles' or 'success', got {rule!r}")
     if source == "rollouts":
         extra["episodes"] = episodes
+        if max_steps is not None:
+            extra["max_steps"] = int(max_steps)
         if external.is_external(run.task):
             from hipolicy_jax.runs.external import calibration_seeds
             extra["first_seed"] = calibration_seeds(seed, episodes)[0]

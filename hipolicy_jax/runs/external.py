@@ -174,7 +174,7 @@ def calibration_seeds(seed: int, episodes: int) -> range:
 
 
 def calibration_rollout(run, inference: InferenceConfig, thresholds: Sequence[float] | None = None, *,
-                        episodes: int, seed: int, envs: int = 8, log=print) -> dict:
+                        episodes: int, seed: int, envs: int = 8, log=print, max_steps: int | None = None) -> dict:
     """``run``'s (a ``store.Run`` or a run dir, its latest checkpoint) ``episodes`` closed-loop calibration
     episodes (``calibration_seeds(seed, episodes)``) through its bridge, served with ``inference`` (its sampler,
     execution and semantics): ``thresholds`` None at stride 1 (``entropy_guided=False``: every decision's entropy,
@@ -182,7 +182,7 @@ def calibration_rollout(run, inference: InferenceConfig, thresholds: Sequence[fl
     (``evaluate_run(keep=True)``), so a repeated calibration runs no episode again. → {``success_rate``,
     ``mean_steps`` (control steps), ``entropies`` (D,) float64 (NaN where a decision had none), ``strides`` (D,)
     int (D: every decision of every episode, episode by episode), ``decisions`` (E,) int, ``seeds`` (E,),
-    ``record`` (the bridge's)}."""
+    ``record`` (the bridge's)}. ``max_steps``: the episodes' step limit (None: the suite's ``eval_max_steps``)."""
     from hipolicy_jax.runs.store import load_run
 
     seeds = calibration_seeds(seed, episodes)
@@ -196,7 +196,8 @@ def calibration_rollout(run, inference: InferenceConfig, thresholds: Sequence[fl
     else:
         inference = dataclasses.replace(inference, entropy_guided=True,
                                         thresholds=tuple(float(t) for t in thresholds))
-    record = evaluate_run(run.run_dir, episodes=episodes, first_seed=seeds[0], max_steps=suite.eval_max_steps,
+    limit = suite.eval_max_steps if max_steps is None else int(max_steps)
+    record = evaluate_run(run.run_dir, episodes=episodes, first_seed=seeds[0], max_steps=limit,
                           step=int(run.policy.step), inference=inference, envs=envs, keep=True,
                           fields=CALIBRATION_FIELDS, log=log)
     return rollout_arrays(record)
