@@ -143,3 +143,26 @@ def test_mjx_text_claims():
     for (task, speed, stride, sem), r in cell.items():  # unlimited: waypoint within a few steps of rate
         if speed is None and sem == "waypoint":
             assert abs(r["mean_steps"] - cell[(task, None, stride, "rate")]["mean_steps"]) <= 8.5
+
+
+def test_fusion_verdict_quotes_the_ablation_table():
+    """The README's and docs/fidelity.md's sentence on the release's fusion quote results/ablation_rlow.md's
+    Hier. − Release fusion cells (the table itself is recomputed from the records by test_findings_recompute)."""
+    with open(os.path.join(ROOT, "results", "ablation_rlow.md")) as f:
+        lines = [ln for ln in f if ln.startswith("| ")]
+    header = [c.strip() for c in lines[0].strip().strip("|").split("|")]
+    col = header.index("Hier. − Release fusion (points)")
+    cells = {r[0]: r[col] for r in ([c.strip() for c in ln.strip().strip("|").split("|")] for ln in lines[2:])}
+    assert all("(ties)" in v for k, v in cells.items())
+    precise, total = cells["**Average (precise)**"], cells["**Total average**"]
+
+    def signed(cell):  # '-3.8 [-11.4, +3.7], p=0.21 (ties)' -> ('−3.8 [−11.4, +3.7]', '0.21')
+        interval, p = cell.split(", p=")
+        return interval.replace("-", "−"), p.split()[0]
+
+    with open(os.path.join(ROOT, "README.md")) as f:
+        readme = " ".join(f.read().split())
+    assert (f"Hier. − Release fusion averages {signed(precise)[0]} points on the precise tasks and "
+            f"{signed(total)[0]} over all four (p = {signed(total)[1]})") in readme
+    with open(os.path.join(ROOT, "docs", "fidelity.md")) as f:
+        assert f"ties on all 4 tasks, {signed(total)[0]} points on average" in f.read()
