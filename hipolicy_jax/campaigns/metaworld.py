@@ -289,12 +289,23 @@ def write_plan(args: MainArgs, costs: list[dict], spent: dict[str, float]) -> st
              f"evaluations: {spent['evaluations']}; the pilot and every arm included) "
              f"{spent_measured_text(spent)}; spent + left: {spent_h + sum(known) / 3600:.1f} CPU-hours. Counted as wall time × cores, as the "
              f"protocol's budget counts them: {spent['wall_core_s'] / 3600:.1f} spent.", "",
-             markdown_table(["Task", "Column", "Seed", "Trains", "Estimated CPU-s"],
-                            [[c["job"].task, c["job"].col.label, str(c["job"].seed), "yes" if c["trains"] else "",
-                              "–" if c["seconds"] is None else f"{c['seconds']:.0f}"] for c in pending]),
-             *damaged_lines(costs)]
-    os.makedirs(args.results, exist_ok=True)
-    path = os.path.join(args.results, "plan.md")
+             *pending_lines(pending, costs)]
+    return write_plan_file(args.results, lines)
+
+
+def pending_lines(pending: list[dict], costs: list[dict]) -> list[str]:
+    """A plan's table of the pending evaluations (task, column, seed, whether its run trains, the estimated CPU-s)
+    and the lines naming damaged records."""
+    return [markdown_table(["Task", "Column", "Seed", "Trains", "Estimated CPU-s"],
+                           [[c["job"].task, c["job"].col.label, str(c["job"].seed), "yes" if c["trains"] else "",
+                             "–" if c["seconds"] is None else f"{c['seconds']:.0f}"] for c in pending]),
+            *damaged_lines(costs)]
+
+
+def write_plan_file(results: str, lines: list[str]) -> str:
+    """Write ``<results>/plan.md`` from its lines; → its path."""
+    os.makedirs(results, exist_ok=True)
+    path = os.path.join(results, "plan.md")
     with open(path, "w") as f:
         f.write("\n".join(lines) + "\n")
     return path

@@ -31,9 +31,9 @@ from tqdm.auto import tqdm
 from hipolicy_jax.campaigns import budgets as budgets_lib
 from hipolicy_jax.campaigns.budgets import BUDGETS, DP
 from hipolicy_jax.campaigns.campaign import (CLOSED_LOOP_EPISODES, EXTERNAL_EVAL_SEED, SUCCESS_MARGIN, Column,
-                                             CostModel, Job, Periodic, damaged_lines,
+                                             CostModel, Job, Periodic,
                                              work_off)
-from hipolicy_jax.campaigns.metaworld import MetaWorldArgs, choose_training_steps
+from hipolicy_jax.campaigns.metaworld import MetaWorldArgs, choose_training_steps, pending_lines, write_plan_file
 from hipolicy_jax.campaigns.report import (COUNT_BOUNDS, EPISODE_COUNTS, cpu_s, ci, interval_text, markdown_table,
                                            p_text, paired, relative_count_difference)
 from hipolicy_jax.campaigns.tables import campaign, eval_episodes, table_record, write_results
@@ -656,15 +656,8 @@ def write_plan(args: Amendment2Args, costs: list[dict]) -> str:
         lines += ["", "The budget rule's estimate (the pilot's rates, `pilot_choice.json`): "
                   + "; ".join(f"{t}: {c / 3600:.1f} h" for t, c in zip(args.tasks, per))
                   + f"; {sum(per) / 3600:.1f} CPU-hours in all."]
-    lines += ["", markdown_table(["Task", "Column", "Seed", "Trains", "Estimated CPU-s"],
-                                 [[c["job"].task, c["job"].col.label, str(c["job"].seed), "yes" if c["trains"] else "",
-                                   "–" if c["seconds"] is None else f"{c['seconds']:.0f}"] for c in pending]),
-              *damaged_lines(costs)]
-    os.makedirs(args.results, exist_ok=True)
-    path = os.path.join(args.results, "plan.md")
-    with open(path, "w") as fh:
-        fh.write("\n".join(lines) + "\n")
-    return path
+    lines += ["", *pending_lines(pending, costs)]
+    return write_plan_file(args.results, lines)
 
 
 # ------------------------------------------------------------------------------------------------------ pilot
