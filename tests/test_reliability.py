@@ -306,7 +306,7 @@ def test_concurrent_demo_collection_happens_once_and_is_never_read_half_written(
         time.sleep(0.5)
         if task == "fails":
             raise KeyboardInterrupt  # cut off mid-collection
-        return [{"state": np.full((5, 3), i, np.float32), "action": np.full((5, 2), i, np.float32)}
+        return [{"state": np.full((5, 3), i, np.float32), "action": np.full((5, 4), i, np.float32)}
                 for i in range(num_episodes)]
 
     monkeypatch.setattr(demos, "collect_demos", slow_collect)
@@ -345,7 +345,7 @@ def slow_collect(task, num_episodes, key, obs_keys, **kwargs):  # smoke-size sta
     with open(calls, "a") as f:
         f.write(f"{os.getpid()}\\n")
     time.sleep(1.0)  # the other process reaches the lock while this one collects
-    return [{"state": np.full((5, 3), os.getpid() + i, np.float32), "action": np.full((5, 2), i, np.float32)}
+    return [{"state": np.full((5, 3), os.getpid() + i, np.float32), "action": np.full((5, 4), i, np.float32)}
             for i in range(num_episodes)]
 
 demos.collect_demos = slow_collect
