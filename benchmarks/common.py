@@ -1,8 +1,10 @@
 """Shared pieces of the benchmark scripts: benchmark policies, timing, memory, FLOPs, machine peak, JSON output.
 
 Every benchmark prints a table and writes ``benchmarks/results/<name>_<device>.json`` (``device`` = ``cpu`` /
-``gpu`` / ``tpu``, from ``jax.default_backend()``). Latencies are wall-clock seconds of calls that end in
-``jax.block_until_ready``; on a shared machine compare ratios taken in one run, not absolute numbers across runs.
+``gpu`` / ``tpu``, from ``jax.default_backend()``); a finished study (``benchmarks.studies``) writes to
+``benchmarks/studies/results/`` instead (``default_results_dir``). Latencies are wall-clock seconds of calls that
+end in ``jax.block_until_ready``; on a shared machine compare ratios taken in one run, not absolute numbers across
+runs.
 """
 
 from __future__ import annotations
@@ -26,6 +28,13 @@ from hipolicy_jax.data.normalizer import Normalizer
 from hipolicy_jax.models.policy_net import PolicyNet, init_policy_params, param_count
 
 RESULTS_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
+STUDIES_RESULTS_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "studies", "results")
+
+
+def default_results_dir(module: str) -> str:
+    """Where the JSON of ``benchmarks.<module>`` goes without ``--out-dir``: ``STUDIES_RESULTS_DIR`` for a finished
+    study (``studies.<name>``), else ``RESULTS_DIR``."""
+    return STUDIES_RESULTS_DIR if module.startswith("studies.") else RESULTS_DIR
 
 STATE_DIM = 10  # synthetic proprioceptive state size (D)
 ACTION_DIM = 4  # synthetic action size (A): end-effector xyz + gripper, as the MJX tasks
@@ -109,7 +118,8 @@ def device_kind() -> str:
 
 def base_parser(name: str, doc: str | None, *, grid: bool = False) -> argparse.ArgumentParser:
     """The flags every benchmark shares: ``--out-dir``, ``--matmul-precision`` and, with ``grid``, the
-    ``--sizes`` / ``--obs`` grid (a small CPU default, the full grid on an accelerator)."""
+    ``--sizes`` / ``--obs`` grid (a small CPU default, the full grid on an accelerator). ``name``: the module under
+    ``benchmarks`` (``sampling``, ``studies.precision``)."""
     p = argparse.ArgumentParser(prog=f"python -m benchmarks.{name}", description=doc,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     if grid:
@@ -124,7 +134,8 @@ def base_parser(name: str, doc: str | None, *, grid: bool = False) -> argparse.A
                        help="model.compute_dtype per row (bf16 convolution / attention operands, fp32 accumulation)")
     p.add_argument("--matmul-precision", default="default",
                    help="jax.default_matmul_precision, e.g. 'bfloat16' (bf16 matmuls on a GPU)")
-    p.add_argument("--out-dir", default=None, help="where the JSON goes (default benchmarks/results)")
+    default_dir = os.path.relpath(default_results_dir(name), os.path.dirname(os.path.dirname(RESULTS_DIR)))
+    p.add_argument("--out-dir", default=None, help=f"where the JSON goes (default {default_dir})")
     return p
 
 
@@ -326,14 +337,16 @@ def write_results(name: str, payload: dict, out_dir: str | None = None, peaks: d
 def report_rows(name: str, argv, args, rows: list[dict], table: str, module: str | None = None, **extra) -> dict:
     """Print ``table``, write ``{command, args, **extra, rows, table_md}`` as the benchmark's JSON; → the payload.
     ``argv``: the ``main(argv)`` argument (None: ``sys.argv[1:]``); ``args``: the parsed namespace; ``module``:
-    the benchmark's module when the JSON's ``name`` is not (``profile_eval_compare`` of ``profile_eval``)."""
+    the benchmark's module under ``benchmarks`` when the JSON's ``name`` is not (``profile_eval`` for
+    ``profile_eval_compare``, ``studies.precision`` for ``precision``). The JSON goes to ``args.out_dir``, else
+    ``default_results_dir(module)``."""
     import sys
 
     print(table)
     payload = {"command": f"python -m benchmarks.{module or name} " + " ".join(sys.argv[1:] if argv is None else argv),
                "args": {k: v for k, v in vars(args).items() if k != "out_dir"}, **extra, "rows": rows,
                "table_md": table}
-    print(f"wrote {write_results(name, payload, args.out_dir)}")
+    print(f"wrote {write_results(name, payload, args.out_dir or default_results_dir(module or name))}")
     return payload
 
 
@@ -354,7 +367,8 @@ def precision_context(precision: str | None):
     return jax.default_matmul_precision(precision) if precision and precision != "default" else contextlib.nullcontext()
 
 
-__all__ = ["ACTION_DIM", "BenchPolicy", "MemoryMonitor", "RESULTS_DIR", "SIZES", "STATE_DIM", "bench_config",
-           "compiled_flops", "device_description", "device_kind", "example_obs", "latency_stats",
+__all__ = ["ACTION_DIM", "BenchPolicy", "MemoryMonitor", "RESULTS_DIR", "SIZES", "STATE_DIM", "STUDIES_RESULTS_DIR",
+           "bench_config", "compiled_flops", "default_results_dir", "device_description", "device_kind", "example_obs",
+           "latency_stats",
            "machine_peaks", "make_bench_policy", "SHAPES", "BenchModel", "bench_models", "markdown_table", "matmul_peak_gflops", "memory_bandwidth_gbs", "param_count", "precision_context",
            "timed_calls", "write_results"]

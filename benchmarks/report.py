@@ -3,7 +3,9 @@
     python -m benchmarks.report [--device cpu] [--notes benchmarks/results/notes_cpu.md]
 
 Each benchmark's section gives the command it was run with and its markdown table; ``--notes`` (markdown) is
-inserted after the heading, for the figures that need prose (the ratios quoted in the summary).
+inserted after the heading, for the figures that need prose (the ratios quoted in the summary). A section's JSON
+is read from ``benchmarks/results`` (the benchmarks at the top of ``benchmarks``) or, failing that, from
+``benchmarks/studies/results`` (the finished studies, ``benchmarks.studies``).
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from benchmarks.common import RESULTS_DIR, device_kind
+from benchmarks.common import RESULTS_DIR, STUDIES_RESULTS_DIR, device_kind
 from hipolicy_jax import jsonio
 
 SECTIONS = (("sampling", "One-call N-sample latency (the paper's sample-times table)"),
@@ -40,9 +42,18 @@ SECTIONS = (("sampling", "One-call N-sample latency (the paper's sample-times ta
             ("checkpoint_load", "Checked checkpoints: what verifying the checksums costs a load (interleaved, one run)"))
 
 
-def _load(results_dir: str, name: str, device: str):
-    path = os.path.join(results_dir, f"{name}_{device}.json")
-    if not os.path.exists(path):
+def _path(name: str, device: str, dirs) -> str | None:
+    """The first ``<dir>/<name>_<device>.json`` of ``dirs`` that exists (None: none does)."""
+    for d in dirs:
+        path = os.path.join(d, f"{name}_{device}.json")
+        if os.path.exists(path):
+            return path
+    return None
+
+
+def _load(dirs, name: str, device: str):
+    path = _path(name, device, dirs)
+    if path is None:
         return None
     with open(path) as f:
         return jsonio.loads(f.read())
@@ -53,12 +64,12 @@ PEER_ROWS = (("dp-lowdim", "dp-lowdim"), ("hipolicy-nofusion", "hipolicy-nofusio
              ("hipolicy-lightfusion", "hipolicy"))
 
 
-def peer_comparison(device: str, results_dir: str = RESULTS_DIR) -> str:
+def peer_comparison(device: str, results_dir: str = RESULTS_DIR, studies_dir: str = STUDIES_RESULTS_DIR) -> str:
     """The PyTorch comparison table from ``pytorch_peer``, ``sampling --shapes`` and ``train_step --shapes`` JSONs:
     per workload, the PyTorch time, ours in float32 and bfloat16, the ratios, GFLOP/s and % of the measured peaks.
     Empty when a JSON is missing."""
-    peer, samp, train = (_load(results_dir, n, device) for n in ("pytorch_peer", "sampling_shapes",
-                                                                  "train_step_shapes"))
+    peer, samp, train = (_load((results_dir, studies_dir), n, device) for n in ("pytorch_peer", "sampling_shapes",
+                                                                                 "train_step_shapes"))
     if not (peer and samp and train):
         return ""
     rows = []
@@ -144,17 +155,18 @@ def serving_note(res: dict) -> str:
     return "\n".join(lines)
 
 
-def render(device: str, notes: str = "", results_dir: str = RESULTS_DIR) -> str:
-    """Markdown of every ``<name>_<device>.json`` present in ``results_dir``."""
+def render(device: str, notes: str = "", results_dir: str = RESULTS_DIR,
+           studies_dir: str = STUDIES_RESULTS_DIR) -> str:
+    """Markdown of every ``<name>_<device>.json`` of ``SECTIONS`` present in ``results_dir`` or ``studies_dir``."""
     out = ["## Performance", ""]
     if notes:
         out += [notes.strip(), ""]
-    comparison = peer_comparison(device, results_dir)
+    comparison = peer_comparison(device, results_dir, studies_dir)
     if comparison:
         out += ["### Against the PyTorch original (Diffusion Policy's U-Net, same machine)", "", comparison]
     for name, title in SECTIONS:
-        path = os.path.join(results_dir, f"{name}_{device}.json")
-        if not os.path.exists(path):
+        path = _path(name, device, (results_dir, studies_dir))
+        if path is None:
             continue
         with open(path) as f:
             res = jsonio.loads(f.read())

@@ -1,8 +1,9 @@
 """Training state, optimiser, EMA and the jitted train step of any generative head.
 
 Diffusion Policy defaults: AdamW (lr 1e-4, betas 0.95/0.999, wd 1e-6) under a cosine schedule with linear warm-up,
-EMA of the parameters with decay 1 − (1 + step)^−0.75 clipped to [0, 0.9999]. The loss is the generative head's
-(``heads``): MSE on ε or x0 at uniform DDPM timesteps (diffusion), on the velocity ε − a (flow matching).
+EMA of the parameters with Diffusion Policy's decay: 0 at updates 1 and 2, then 1 − (k − 1)^−0.75 at update k,
+clipped to 0.9999 (``ema_decay``). The loss is the generative head's (``heads``): MSE on ε or x0 at uniform DDPM
+timesteps (diffusion), on the velocity ε − a (flow matching).
 
 Keys: the step's key is ``fold_in(base_key, step)`` so a resumed run draws exactly the same noise as an
 uninterrupted one.

@@ -1,6 +1,7 @@
 """Smoke tests of the benchmark scripts: each ``main`` runs on a tiny config and writes finite JSON fields.
 
-The figures themselves live in ``benchmarks/results``; nothing here asserts a timing.
+The figures themselves live in ``benchmarks/results`` and ``benchmarks/studies/results``; nothing here asserts a
+timing.
 """
 
 import json
@@ -10,7 +11,8 @@ import os
 import pytest
 
 from hipolicy_jax import jsonio
-from benchmarks import convolutions, optimisation, rollout, sampling, small_matmul, tradeoff, train_step
+from benchmarks import rollout, sampling, tradeoff, train_step
+from benchmarks.studies import convolutions, optimisation, small_matmul
 from benchmarks.machine import PEAKS_ENV
 
 
@@ -65,7 +67,7 @@ def test_train_step_benchmark(tmp_path):
 
 @pytest.mark.slow
 def test_checkpoint_load_benchmark(tmp_path):
-    from benchmarks import checkpoint_load
+    from benchmarks.studies import checkpoint_load
 
     checkpoint_load.main(["--sizes", "tiny", "--rounds", "2", "--out-dir", str(tmp_path)])
     res = _load(tmp_path, "checkpoint_load")
@@ -214,7 +216,7 @@ def test_tradeoff_cheapest_and_spearman():
 
 
 @pytest.mark.parametrize("module", [sampling, train_step, rollout, optimisation, convolutions, tradeoff, "delay",
-                                    "serving", "profile", "checkpoint_load"])
+                                    "serving", "profile", "studies.checkpoint_load"])
 def test_benchmark_flags_parse(module):
     if isinstance(module, str):
         import importlib
@@ -223,7 +225,7 @@ def test_benchmark_flags_parse(module):
 
 
 def test_precision_benchmark_needs_checkpoints(capsys):
-    from benchmarks import precision
+    from benchmarks.studies import precision
 
     assert precision.parse_args(["--checkpoints", "a", "b"]).checkpoints == ["a", "b"]
     with pytest.raises(SystemExit):
@@ -393,7 +395,7 @@ def test_profile_benchmark(tmp_path):
 def test_compute_dtype_benchmark(tmp_path):
     """The interleaved before / after: three train-step variants with the same loss, two sampler variants whose
     samples differ by bf16 rounding only."""
-    from benchmarks import compute_dtype
+    from benchmarks.studies import compute_dtype
 
     res = compute_dtype.main(["--quick", "--out-dir", str(tmp_path)])
     rows = _load(tmp_path, "compute_dtype")["rows"]

@@ -1,10 +1,25 @@
-"""MJX task suite for hipolicy_jax: registry of tasks.
+"""The MJX task suite, the world at both ends of the flow: the source of the demonstrations (data) and the closed
+loop of evaluation.
 
-``make(task_name, **overrides) -> MjxEnv`` builds a task; ``TASKS`` lists the names; ``make_for_encoder`` builds a
-task computing the observations a policy's encoder reads (with its camera). See ``base.py`` for the API.
+    **envs** (scripted experts -> demos, ``demos``) -> data -> encoders -> denoiser -> generative head -> sampling
+    -> evaluation (rollouts in **envs**) -> experiments
 
-Tasks of external simulators (``metaworld:<task>``, ``external.py``) have no MJX env: they are trained on from demos
-collected in their own venv; ``check_task`` accepts both kinds.
+* ``base``: ``MjxEnv`` (reset / step of ONE instance, MuJoCo Playground style; batch with ``jax.vmap``), ``State``
+  and the scripted-expert plans (``ExpertPlan``);
+* the tasks, one module each: ``press_button``, ``latch_door``, ``stack_cubes``, ``pick_place`` (MJCF in
+  ``assets/``);
+* ``camera``: the jitted ray-cast camera (RGB, depth, point cloud) the image and point-cloud observations come from;
+* ``demos``: the scripted experts' demonstrations, collected in one jitted rollout and cached as a zarr
+  ``ReplayBuffer`` (``collect_demos``, ``load_or_collect``);
+* ``external``: tasks of other simulators (``metaworld:<task>``): no MJX env, demos from a bridge in its own venv;
+* ``check_experts``: a command line: expert success, compile times and env throughput per task.
+
+Public names here: ``make(task_name, **overrides) -> MjxEnv`` builds a task; ``TASKS`` lists the names and
+``TASK_PRECISE`` the paper's precise / non-precise split; ``make_for_encoder`` / ``encoder_env_kwargs`` build a task
+computing the observations a policy's encoder reads (with its camera); ``episode_limit`` is a task's step limit;
+``check_task`` accepts MJX and external task names; ``MjxEnv``, ``State``, ``ExpertPlan`` and the ``external``
+module. Rollouts and videos are the evaluation stage's (``hipolicy_jax.evaluation``). Within ``hipolicy_jax`` this
+package imports only ``config`` and ``data``.
 """
 
 from __future__ import annotations

@@ -1,7 +1,20 @@
-"""Generative heads: the training objective and the sampling update of a policy (``base`` has the interface).
+"""Generative heads, the stage between the denoiser and sampling: what the network's output means.
 
-``PolicyConfig.objective`` names the head; ``make_head(cfg)`` builds it. Adding a head = one module in this package
-(a frozen dataclass with ``training_example``, ``plan`` and ``describe``, and a ``make(cfg)``) + one line here.
+    encoders -> denoiser (``models``) -> **generative head** -> sampling (``hipolicy_jax.sampling``) / training
+    (``hipolicy_jax.training``)
+
+A head owns the training objective (``training_example``: the network input, time input and regression target of
+a clean chunk) and the sampling rule (``plan``: a per-step table and the update the one sampler scans); the network,
+the entropy and the stride selection are the same for every head.
+
+* ``base``: the interface, ``GenerativeHead`` (a protocol), ``TrainingExample`` and ``StepPlan``;
+* ``diffusion``: ``DiffusionHead``, DDPM training and DDPM / DDIM / clipped-DDIM sampling over one reverse-step table;
+* ``flow``: ``FlowHead``, conditional flow matching on the linear path and Euler sampling.
+
+``PolicyConfig.objective`` names the head; ``make_head(cfg)`` builds it from ``HEADS``. Public names here:
+``HEADS``, ``make_head``, ``GenerativeHead``, ``StepPlan``, ``TrainingExample``. Adding a head = one module in this
+package (a frozen dataclass with ``name``, ``training_example``, ``plan`` and ``describe``, and a ``make(cfg)``)
++ one line in ``HEADS``. Within ``hipolicy_jax`` this package imports only ``config``.
 """
 
 from __future__ import annotations

@@ -1,10 +1,11 @@
-"""Observation encoders: proprioceptive state MLP, ResNet-18-style image encoders, DP3 point-cloud encoder.
+"""Observation encoders: proprioceptive state MLP (or the raw state), ResNet-18 image encoders, DP3 point-cloud
+encoder.
 
 ``ObsEncoder`` turns a hierarchical observation window into HiPolicy's per-frequency condition. Its input arrays
 carry leading dims ``(B, M, L_h, ...)`` (batch, frequency in segment order, history frame); every frame of every
-frequency goes through the *same* encoder, and the ``L_h`` frame features of one frequency are flattened into that
-frequency's condition, exactly as Diffusion Policy flattens its observation features over time into one global
-condition. The result is ``(B, M, L_h * F)``.
+frequency goes through the *same* encoder (each distinct time step once, since the frequencies' windows overlap),
+and the ``L_h`` frame features of one frequency are flattened into that frequency's condition, exactly as Diffusion
+Policy flattens its observation features over time into one global condition. The result is ``(B, M, L_h * F)``.
 """
 
 from __future__ import annotations

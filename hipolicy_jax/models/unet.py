@@ -8,26 +8,32 @@ frequency first); the condition ``cond`` is ``(B, M, Dc)`` in the same order. Co
   bias computed from ``[step embedding ⊕ cond[:, m]]`` with the block's single ``Mish -> Dense(2C)`` head (same
   weights for every segment, different conditions). After ``l`` down-samplings a segment is ``L_c / 2^l`` steps
   long. ``condition='low'`` / ``'high'`` (ablations) give every segment ``cond[:, 0]`` / ``cond[:, M-1]``.
-* **Global fusion.** Placed as in the release: inside *both* residual blocks of the first down level. Each of these
-  blocks splits its input ``(B, M*L_c, C_in)`` into ``M`` segment tokens of size ``L_c*C_in``, prepends a learned
-  CLS token, runs multi-head self-attention over the ``M+1`` tokens, reshapes the CLS output to ``(L_c, C_in)`` and
-  concatenates it channel-wise to every segment. The block's first conv then maps ``2*C_in -> 2*C_out`` channels;
-  only the first ``C_out`` ("local") channels are FiLM-modulated, the other ``C_out`` ("global") channels bypass
-  FiLM and are concatenated back, and the second conv maps ``2*C_out -> C_out``. The residual path uses the
-  block's original input. So the first block's tokens are the raw noisy action segments (``C_in = A``) and the
-  second block's are ``down_dims[0]``-channel features.
+* **Global fusion.** Placed as in the release: inside *both* residual blocks of the first down level, so the first
+  block sees the raw noisy action segments (``C_in = A``) and the second ``down_dims[0]``-channel features. Such a
+  block computes a global feature ``(L_c, C_in)`` from its input ``(B, M*L_c, C_in)`` (``SegmentFusion``, below)
+  and concatenates it channel-wise to every segment. Its first conv then maps ``2*C_in -> 2*C_out`` channels; only
+  the first ``C_out`` ("local") channels are FiLM-modulated, the other ``C_out`` ("global") channels bypass FiLM and
+  are concatenated back, and the second conv maps ``2*C_out -> C_out``. The residual path uses the block's original
+  input. The release does the same.
 
-  The release builds the attention with ``torch.nn.MultiheadAttention`` and its default ``batch_first=False`` but
-  feeds ``(B, M+1, D)`` tokens, so its attention runs along the *batch* axis, separately at each of the M+1 token
-  positions. The CLS position holds B copies of the one learned CLS token: its scores are all equal, the softmax is
-  uniform and its output is ``out_proj(v_proj(cls))``. So the release's "global feature" is a learned constant,
-  independent of the input and of the batch (the segment positions do attend across samples, but their outputs are
-  discarded), and the paper's fusion ablation compared against a learned bias. Here attention runs over the ``M+1``
-  tokens of each sample, as the paper describes: no information crosses the batch axis (``fusion_kind='attention'``,
-  the default). ``fusion_kind='release'`` computes the release's constant exactly, to run its weights.
-  When ``L_c*C_in`` is not a multiple of ``fusion_heads`` the query/key/value width is rounded up to the next
-  multiple (the output projection still returns ``L_c*C_in``); when it is a multiple (every release setting) the
-  attention has the release's shape.
+  The global feature differs from the release's. ``fusion_kind='attention'`` (the default) computes it as the paper
+  describes: the input is split into ``M`` segment tokens of ``L_c*C_in`` features (each segment flattened time
+  first), a learned CLS token is prepended, multi-head self-attention runs over each sample's ``M+1`` tokens, and
+  the CLS output, reshaped to ``(L_c, C_in)``, is the global feature. No information crosses the batch axis. When
+  ``L_c*C_in`` is not a multiple of ``fusion_heads`` the query/key/value width is rounded up to the next multiple
+  (the output projection still returns the token width); when it is a multiple (every release setting) the
+  attention has the release's shape. ``fusion_token_dim`` projects wide tokens to a smaller width first (a model
+  change, ``SegmentFusion``).
+
+  The release flattens each segment channels first (``(C_in, L_c)``) and builds the attention with
+  ``torch.nn.MultiheadAttention`` and its default ``batch_first=False``, but feeds it ``(B, M+1, D)`` tokens. So its
+  attention runs along the *batch* axis, separately at each of the ``M+1`` token positions. The CLS position holds
+  B copies of the one learned CLS token: its scores are all equal, the softmax is uniform and its output is
+  ``out_proj(v_proj(cls))``. The release's "global feature" is therefore a learned constant, independent of the
+  input and of the batch (the segment positions do attend across samples, but their outputs are discarded): a
+  fusion ablation run with the release's code compares against a learned bias. ``fusion_kind='release'`` computes
+  that constant exactly (reshaped channels first, as the release reshapes it), to run the release's weights;
+  docs/fidelity.md names the test that checks it and the ablation of the two kinds.
 
 * **FiLM split (sampling speed).** Mish is element-wise and the FiLM head is linear, so
   ``Dense(mish([step ⊕ cond])) = mish(step)·W_t + (mish(cond)·W_c + b)`` with ``W_t, W_c`` the first ``d`` and the
@@ -148,7 +154,8 @@ def conv1d(x: jax.Array, kernel: jax.Array, padding: tuple[int, int], stride: in
     ``compute_dtype='float32'``: XLA's native convolution, except where the input is shorter than the kernel (the
     deepest U-Net levels of short chunks: ``T = 2, 4`` with ``k = 5``): there XLA swaps the convolution's operands
     and its CPU backend runs the result ~35x slower than the equivalent im2col matmul (forward and gradient;
-    ``benchmarks.convolutions`` measures the model-level gain), so the windows are gathered and multiplied directly.
+    ``benchmarks.studies.convolutions`` measures the model-level gain), so the windows are gathered and multiplied
+    directly.
 
     ``compute_dtype='bfloat16'``: always the im2col matmul, with bf16 operands and float32 accumulation and output
     (``preferred_element_type``). XLA's CPU convolution gains nothing from bf16 operands, its matmul uses the BF16
@@ -318,8 +325,8 @@ class SegmentFusion(nn.Module):
     ``token_dim`` (a model change, not the paper's form; None = the paper's): each segment token is first
     projected ``L*C -> token_dim`` (one shared ``Dense``), the attention runs on ``token_dim``-wide tokens and only
     the CLS output is projected back ``token_dim -> L*C``; tokens no wider than ``token_dim`` keep the paper's
-    form (the first block's raw action segments). With ``L*C = 2048`` and ``token_dim = 256`` that is
-    1.7 M instead of 16.8 M parameters and about a tenth of the attention's FLOPs.
+    form (the first block's raw action segments). With ``L*C = 2048``, three segments and ``token_dim = 256`` that
+    is 1.3 M instead of 16.8 M parameters and about a twentieth of the fusion's FLOPs (6.3 vs 134 MFLOP per sample).
     """
 
     num_segments: int

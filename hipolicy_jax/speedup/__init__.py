@@ -20,6 +20,12 @@ Modules, in the order the stage runs them (each states its shapes at its boundar
 - ``plot``: one demo's entropy over time with its segments and rates shaded.
 
 It uses a trained run (``runs.store``), so it sits beside ``runs``; ``experiments.speedup`` is its command line.
+Its place in the flow: data (a demo buffer) -> **speedup** (with a proxy policy that went through the whole flow)
+-> data again (the accelerated buffer, on which the policy is retrained).
+
+Public names re-exported here: ``SpeedupConfig``; ``kde_entropy``, ``frame_entropies``, ``saturated_fraction``;
+``label_frames``, ``segments``, ``keep_indices``, ``retime_episode``, ``accelerate``, ``PRECISE``, ``CASUAL``;
+``speedup_demos``, ``check_proxy_fits``, ``buffer_task``, ``SPEEDUP_ATTR``.
 """
 
 from hipolicy_jax.speedup.config import SpeedupConfig

@@ -1,6 +1,6 @@
 """Does bf16 change what the policy samples? Per-dimension sample statistics of a trained run, float32 vs bfloat16.
 
-    python -m benchmarks.precision --checkpoints runs/paper/cpu/press_button/state/hipolicy/seed0 \
+    python -m benchmarks.studies.precision --checkpoints runs/paper/cpu/press_button/state/hipolicy/seed0 \
         runs/paper/cpu/latch_door/state/hipolicy/seed0 [--samples 1000 --observations 8]
 
 For each run and each of ``--observations`` held-out demo observations, ``--samples`` chunks are drawn with the
@@ -26,10 +26,11 @@ from hipolicy_jax.runs.store import heldout_dataset, load_run, run_inference, wi
 from hipolicy_jax.sampling import make_sampler
 
 NAME = "precision"
+MODULE = "studies.precision"  # python -m benchmarks.studies.precision
 
 
 def parse_args(argv=None):
-    p = base_parser(NAME, __doc__)
+    p = base_parser(MODULE, __doc__)
     p.add_argument("--checkpoints", nargs="+", required=True, help="trained run dirs")
     p.add_argument("--samples", type=int, default=1000)
     p.add_argument("--observations", type=int, default=8)
@@ -102,7 +103,7 @@ def main(argv=None) -> dict:
           pct(r["f32_rekeyed_vs_f32"]), r["bf16_vs_f32"]["mean_diff_over_std"],
           r["f32_rekeyed_vs_f32"]["mean_diff_over_std"], r["stride_agreement"], r["entropy_abs_diff"],
           r["entropy_abs_diff_rekeyed"]] for r in rows])
-    return report_rows(NAME, argv, args, rows, table)
+    return report_rows(NAME, argv, args, rows, table, module=MODULE)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """The PyTorch peer of the throughput comparison: Diffusion Policy's 1D U-Net in PyTorch, timed on this machine.
 
-    python -m benchmarks.pytorch_peer                    # needs torch (not a dependency of this package)
-    python -m benchmarks.pytorch_peer --shapes dp-lowdim --ns 1 100 --threads 2
+    python -m benchmarks.studies.pytorch_peer            # needs torch (not a dependency of this package)
+    python -m benchmarks.studies.pytorch_peer --shapes dp-lowdim --ns 1 100 --threads 2
 
 The network is Diffusion Policy's ``ConditionalUnet1D`` at paper size (down dims 256/512/1024, kernel 5, 8 groups,
 a 256-dim step embedding, FiLM scale and bias), written here in plain PyTorch so the comparison with
@@ -17,7 +17,7 @@ Sampling is DDPM with 100 steps (squared-cosine betas, epsilon prediction, clipp
 observation in one batch, under ``torch.inference_mode``. The train step is Diffusion Policy's: noise, random
 steps, MSE, backward, AdamW (lr 1e-4, weight decay 1e-6) and the per-parameter EMA update, at ``--batch``.
 Times are medians after a warm-up call, with ``--threads`` intra-op threads. Writes
-``benchmarks/results/pytorch_peer_cpu.json`` (standard library JSON: this script does not import JAX).
+``benchmarks/studies/results/pytorch_peer_cpu.json`` (standard library JSON: this script does not import JAX).
 """
 
 from __future__ import annotations
@@ -191,7 +191,7 @@ def timed(fn, repeats):
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(prog="python -m benchmarks.pytorch_peer", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m benchmarks.studies.pytorch_peer", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--shapes", nargs="+", default=list(SHAPES), choices=list(SHAPES))
     p.add_argument("--ns", nargs="+", type=int, default=[1, 100])
@@ -245,7 +245,8 @@ def main(argv=None):
     payload = {"benchmark": "pytorch_peer", "torch_version": torch.__version__, "threads": args.threads,
                "cpu_count": os.cpu_count(), "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
                "machine": machine_info(torch_peaks),
-               "command": "python -m benchmarks.pytorch_peer " + " ".join(sys.argv[1:] if argv is None else argv),
+               "command": "python -m benchmarks.studies.pytorch_peer "
+                          + " ".join(sys.argv[1:] if argv is None else argv),
                "rows": rows}
     with open(path, "w") as f:
         json.dump(payload, f, indent=1)

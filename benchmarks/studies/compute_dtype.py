@@ -1,7 +1,7 @@
 """Before / after of the throughput changes, measured side by side (interleaved calls) in one run.
 
-    python -m benchmarks.compute_dtype                        # CPU default: the DP low-dim and HiPolicy shapes
-    python -m benchmarks.compute_dtype --shapes hipolicy --n 100 --batch 128 --rounds 5
+    python -m benchmarks.studies.compute_dtype                # CPU default: the DP low-dim and HiPolicy shapes
+    python -m benchmarks.studies.compute_dtype --shapes hipolicy --n 100 --batch 128 --rounds 5
 
 Variants, on the same parameters, batch and keys:
 
@@ -33,10 +33,11 @@ from hipolicy_jax.heads import make_head
 from hipolicy_jax.training import TrainState, ema_decay, make_optimizer, policy_loss
 
 NAME = "compute_dtype"
+MODULE = "studies.compute_dtype"  # python -m benchmarks.studies.compute_dtype
 
 
 def parse_args(argv=None):
-    p = base_parser(NAME, __doc__, grid=True)
+    p = base_parser(MODULE, __doc__, grid=True)
     p.add_argument("--n", type=int, default=100, help="samples per sampler call")
     p.add_argument("--steps", type=int, default=10, help="DDIM steps per sampler call")
     p.add_argument("--batch", type=int, default=128)
@@ -137,7 +138,7 @@ def main(argv=None) -> dict:
                             "loss / max |Δ| to float32"],
                            [[r["model"], r["label"], r["variant"], r["rounds"], r["median_s"] * 1e3, r["speedup"],
                              r.get("loss", r.get("max_abs_diff_to_float32"))] for r in rows])
-    return report_rows(NAME, argv, args, rows, table)
+    return report_rows(NAME, argv, args, rows, table, module=MODULE)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """What checked checkpoints cost a load: restores with and without verifying the SHA-256 checksums.
 
-    python -m benchmarks.checkpoint_load                      # cpu and paper sizes, state policy, 10 rounds
-    python -m benchmarks.checkpoint_load --sizes tiny --rounds 2
+    python -m benchmarks.studies.checkpoint_load              # cpu and paper sizes, state policy, 10 rounds
+    python -m benchmarks.studies.checkpoint_load --sizes tiny --rounds 2
 
 Per size: a train state (parameters, EMA parameters, AdamW state) of the benchmark policy and a fitted normaliser
 are saved once with ``checkpoint.Checkpointer`` (which stores the checksums). Then, in interleaved rounds (the order
@@ -16,8 +16,8 @@ and, on the trees a policy load returns, the checksums alone (their share of a p
 
 Reported: the trees' bytes, the median of each and the ratios ``policy, checked / full, unchecked`` (a policy load
 now against before) and ``full, checked / full, unchecked`` (resume). Writes
-``benchmarks/results/checkpoint_load_<device>.json``. The files are read from the page cache after the first round,
-so the checksums' share is that of a warm disk: the largest it can be.
+``benchmarks/studies/results/checkpoint_load_<device>.json``. The files are read from the page cache after the
+first round, so the checksums' share is that of a warm disk: the largest it can be.
 """
 
 from __future__ import annotations
@@ -35,10 +35,11 @@ from hipolicy_jax.config import TrainConfig
 from hipolicy_jax.training import init_train_state, make_optimizer
 
 NAME = "checkpoint_load"
+MODULE = "studies.checkpoint_load"  # python -m benchmarks.studies.checkpoint_load
 
 
 def parse_args(argv=None):
-    p = base_parser(NAME, __doc__)
+    p = base_parser(MODULE, __doc__)
     p.add_argument("--sizes", nargs="+", default=["cpu", "paper"], choices=["tiny", "cpu", "paper"])
     p.add_argument("--rounds", type=int, default=10, help="timed restores of each kind")
     return p.parse_args(argv)
@@ -103,7 +104,7 @@ def main(argv=None) -> dict:
         [[r["size"], r["params"], r["tree_bytes"] / 1e6, r["policy_checked_median_s"], r["full_unchecked_median_s"],
           r["full_checked_median_s"], f"{r['policy_load_vs_before']:.2f}x", f"{r['resume_vs_before']:.2f}x",
           f"{100 * r['policy_checksums_share']:.0f} %"] for r in rows])
-    return report_rows(NAME, argv, args, rows, table, note=note(rows))
+    return report_rows(NAME, argv, args, rows, table, module=MODULE, note=note(rows))
 
 
 def note(rows: list[dict]) -> str:

@@ -1,7 +1,7 @@
 """The N=1 latency's bound, one kernel at a time: how fast XLA's CPU dot streams a weight matrix when few rows
 multiply it.
 
-    python -m benchmarks.small_matmul        # M 4/8/16/32 rows x the DP low-dim U-Net's largest weights, fp32 + bf16
+    python -m benchmarks.studies.small_matmul   # M 4/8/16/32 rows x the DP low-dim U-Net's largest weights, fp32 + bf16
 
 One denoising step of one sample multiplies M = 4–16 rows (the chunk's time steps at each U-Net level) by every
 weight matrix once (the convolutions are im2col matmuls in bf16, ``models.unet.conv1d``), so the step cannot run
@@ -28,6 +28,7 @@ import numpy as np
 from benchmarks.common import base_parser, markdown_table, report_rows
 
 NAME = "small_matmul"
+MODULE = "studies.small_matmul"  # python -m benchmarks.studies.small_matmul
 # (K, N): im2col kernels of the DP low-dim U-Net (down dims 512 / 1024 / 2048, 5 taps) — the weights that dominate
 # its 65.8 M parameters
 SHAPES = [(5 * 1024, 2048), (5 * 2048, 2048), (5 * 2048, 1024)]
@@ -36,7 +37,7 @@ VARIANTS = {"xla default": "", "xnn dot fusion": "--xla_cpu_experimental_xnn_fus
 
 
 def parse_args(argv=None):
-    p = base_parser(NAME, __doc__)
+    p = base_parser(MODULE, __doc__)
     p.add_argument("--rows", nargs="+", type=int, default=[4, 8, 16, 32], help="M: rows multiplying the weights")
     p.add_argument("--dtypes", nargs="+", default=["float32", "bfloat16"], choices=["float32", "bfloat16"])
     p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
@@ -96,8 +97,8 @@ def main(argv=None) -> dict:
     rows, bandwidths = [], {}
     for variant in args.variants:
         env = dict(os.environ, XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + " " + VARIANTS[variant]).strip())
-        cmd = [sys.executable, "-m", "benchmarks.small_matmul", "--child", variant, "--rows", *map(str, args.rows),
-               "--dtypes", *args.dtypes, "--repeats", str(args.repeats)]
+        cmd = [sys.executable, "-m", "benchmarks.studies.small_matmul", "--child", variant, "--rows",
+               *map(str, args.rows), "--dtypes", *args.dtypes, "--repeats", str(args.repeats)]
         proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
         if proc.returncode != 0:
             print(f"[{variant}] failed: {proc.stderr.strip().splitlines()[-1:]}", flush=True)
@@ -117,7 +118,7 @@ def main(argv=None) -> dict:
         key = (r["dtype"], r["m"])
         if r["fraction_of_bandwidth"] > best.get(key, {}).get("fraction_of_bandwidth", -1):
             best[key] = r
-    return report_rows(NAME, argv, args, rows, table, bandwidth_gbs=bandwidths,
+    return report_rows(NAME, argv, args, rows, table, module=MODULE, bandwidth_gbs=bandwidths,
                        best=[{"dtype": d, "m": m, "variant": r["variant"], "layout": r["layout"],
                               "fraction_of_bandwidth": r["fraction_of_bandwidth"]} for (d, m), r in sorted(best.items())])
 

@@ -1,6 +1,6 @@
 """Before / after of the sampler optimisations, measured side by side (interleaved calls) in one run.
 
-    python -m benchmarks.optimisation                 # CPU default: cpu size, state obs, DDIM 10 + DDPM 100, N 1/100
+    python -m benchmarks.studies.optimisation     # CPU default: cpu size, state obs, DDIM 10 + DDPM 100, N 1/100
 
 Variants, all through ``sampling.make_sampler`` on the same parameters and keys:
 
@@ -34,6 +34,7 @@ from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.sampling import make_sampler
 
 NAME = "optimisation"
+MODULE = "studies.optimisation"  # python -m benchmarks.studies.optimisation
 VARIANTS = ("before", "film", "mish", "after")
 
 
@@ -93,7 +94,7 @@ def variant_net(net, variant: str):
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.optimisation", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m benchmarks.studies.optimisation", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--size", default="cpu", choices=["tiny", "cpu", "paper"])
     p.add_argument("--obs", default="state", choices=["state", "image", "pointcloud"])
@@ -160,7 +161,7 @@ def main(argv=None) -> dict:
         [[r["sampler"], r["steps"], r["n"], r["rounds"], r["before_median_s"] * 1e3, r["film_median_s"] * 1e3,
           r["mish_median_s"] * 1e3, r["after_median_s"] * 1e3, r["speedup_after"], r["max_abs_diff"]]
          for r in rows])
-    return report_rows(NAME, argv, args, rows, table, size=args.size, obs=args.obs)
+    return report_rows(NAME, argv, args, rows, table, module=MODULE, size=args.size, obs=args.obs)
 
 
 if __name__ == "__main__":

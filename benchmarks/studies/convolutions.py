@@ -1,6 +1,6 @@
 """Before / after of the U-Net's short-sequence convolutions, measured side by side (interleaved calls) in one run.
 
-    python -m benchmarks.convolutions            # CPU default: cpu size, state obs, DP (L_c 8, 16) and HiPolicy
+    python -m benchmarks.studies.convolutions            # CPU default: cpu size, state obs, DP (L_c 8, 16) and HiPolicy
 
 Variants of the same network and parameters:
 
@@ -37,6 +37,7 @@ from hipolicy_jax.sampling import sample
 from hipolicy_jax.training import init_train_state, make_optimizer, make_train_step
 
 NAME = "convolutions"
+MODULE = "studies.convolutions"  # python -m benchmarks.studies.convolutions
 VARIANTS = ("native", "after")
 # label -> (strides, L_c)
 CONFIGS = {"DP L_c=8": ((1,), 8), "DP L_c=16": ((1,), 16), "HiPolicy 1/2/3 L_c=8": ((1, 2, 3), 8)}
@@ -75,7 +76,7 @@ def native_convs(enabled: bool):
 
 
 def parse_args(argv=None):
-    p = base_parser(NAME, __doc__)
+    p = base_parser(MODULE, __doc__)
     p.add_argument("--size", default="cpu", choices=["tiny", "cpu", "paper"])
     p.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
     p.add_argument("--batch", type=int, default=64, help="train-step batch")
@@ -160,7 +161,7 @@ def main(argv=None) -> dict:
     table = markdown_table(["config", "call", "rounds", "native ms", "after ms", "native/after", "max abs diff"],
                            [[r["config"], what[r["kind"]], r["rounds"], r["native_median_s"] * 1e3,
                              r["after_median_s"] * 1e3, r["speedup"], r["max_abs_diff"]] for r in rows])
-    return report_rows(NAME, argv, args, rows, table)
+    return report_rows(NAME, argv, args, rows, table, module=MODULE)
 
 
 if __name__ == "__main__":
