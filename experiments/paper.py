@@ -11,6 +11,9 @@ Tables (sub-commands), each trained with ``hipolicy_jax.runs.train`` and evaluat
   entropy-guided (HiPolicy) — the same trained runs, evaluated with different execution strategies.
 - ``thresholds``: entropy-guided execution with thresholds at several percentile pairs of held-out demo entropies.
 - ``hparams``: L_h, L_c and M around the defaults (3, 8, 3).
+- ``speedup``: HiPolicy against DemoSpeedup (amendment 5): DP, DP on DemoSpeedup-accelerated demos, DP+AAC,
+  DP+HiPolicy and HiPolicy on the accelerated demos, at 8,000 training steps; each task's accelerated buffer is made
+  from its proxy (the DP network of seed 0) before its runs (``hipolicy_jax/campaigns/speedup.py``).
 - ``pilot``: the protocol's DP-only pilot that picks each task's low-data regime (``--regime rlow``).
 - ``campaign``: all of the protocol's tables (results/PROTOCOL.md) — every run and evaluation under one progress
   bar with its ETA, then every table from the records and ``findings.md``: each paired comparison of HiPolicy
@@ -32,13 +35,22 @@ The protocol of the campaign these tables belong to is ``results/PROTOCOL.md``.
     python -m experiments.paper pilot --budget cpu
     python -m experiments.paper main --budget cpu --regime rlow --seeds 0 1 2
     python -m experiments.paper main --from-records
+    python -m experiments.paper speedup --plan
     python -m experiments.paper campaign --executor slurm --slurm-partition cpu --cluster-time-min 240
 """
 
 from __future__ import annotations
 
-from hipolicy_jax.campaigns.tables import SUBCOMMANDS, build
+from hipolicy_jax.campaigns import speedup, tables
 from hipolicy_jax.runs.cli import run_table_cli, table_cli
+
+SUBCOMMANDS = {**tables.SUBCOMMANDS, speedup.SpeedupArgs.TABLE: speedup.SpeedupArgs}
+
+
+def build(args) -> str:
+    """The table's builder: amendment 5's (``campaigns.speedup``) or one of ``campaigns.tables``."""
+    return speedup.speedup_table(args) if isinstance(args, speedup.SpeedupArgs) else tables.build(args)
+
 
 # parse_args(argv) -> the table's args; main(args) -> builds and prints it, returns its markdown file's path
 parse_args, main = table_cli(SUBCOMMANDS, build, __doc__, "paper")

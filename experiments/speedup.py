@@ -62,14 +62,14 @@ def summary_lines(result: SpeedupResult) -> list[str]:
                      f"max {int(lengths.max())})")
     lines.append(f"{'speed-up':>11}: x{src.num_frames / acc.num_frames:.2f} fewer frames")
     h, rec = result.entropy, result.record
-    n, bandwidth = rec["config"]["num_samples"], rec["config"]["bandwidth"]
+    n, bandwidth = rec["config"]["num_samples"], rec.get("bandwidth", rec["config"]["bandwidth"])
     lines.append(f"{'entropy':>11}: median {float(np.median(h)):.3f} (10-90%: {float(np.percentile(h, 10)):.3f}-"
                  f"{float(np.percentile(h, 90)):.3f}; ceiling log N = {np.log(n):.3f}, "
                  f"{100 * rec['saturated_fraction']:.0f}% of frames at it)")
     if rec["saturated_fraction"] > 0.5:
         lines.append(f"warning: {100 * rec['saturated_fraction']:.0f}% of frames sit at the ceiling log N: the proxy's "
-                     f"samples are spread far wider than --speedup.bandwidth {bandwidth}, so the segmentation has "
-                     f"little to read; consider a larger bandwidth")
+                     f"samples are spread far wider than the bandwidth {bandwidth:g}, so the segmentation has "
+                     f"little to read; consider a larger --speedup.bandwidth or a --speedup.bandwidth-ladder")
     return lines
 
 

@@ -165,18 +165,35 @@ def regime_changes(regime: str, task: str) -> dict[str, Any]:
 
 
 def run_changes_name(run_changes: dict[str, Any] | None) -> str:
-    """Dir-name suffix of run-level changes: '' for none, e.g. '_d25' (25 demos), '_t4000' (4000 steps)."""
+    """Dir-name suffix of run-level changes: '' for none, e.g. '_d25' (25 demos), '_t4000' (4000 steps),
+    '_t8000_speedup' (trained on the DemoSpeedup-accelerated demos, ``speedup_data_path``)."""
     parts = []
     for key, value in sorted((run_changes or {}).items()):
-        if key == "episodes":
+        if key == "speedup":
+            if value is not True:
+                raise ValueError(f"run_changes: 'speedup' is True (train on the accelerated demos) or absent, got "
+                                 f"{value!r}")
+            parts.append("speedup")
+        elif key == "episodes":
             parts.append(f"d{value}")
         elif key == "train.num_steps":
             parts.append(f"t{value}")
         elif key.startswith("train."):
             parts.append(f"{key[6:].replace('_', '')}{value}")
         else:
-            raise ValueError(f"run_changes: unknown key {key!r} (expected 'episodes' or 'train.<field>')")
+            raise ValueError(f"run_changes: unknown key {key!r} (expected 'episodes', 'speedup' or 'train.<field>')")
     return "".join("_" + p for p in parts)
+
+
+SPEEDUP_SUFFIX = "_speedup.zarr"
+
+
+def speedup_data_path(data_path: str) -> str:
+    """The DemoSpeedup-accelerated buffer made from the demo buffer at ``data_path``:
+    ``<data>/<task>_state_100.zarr`` → ``<data>/<task>_state_100_speedup.zarr`` (``campaigns.speedup`` makes it
+    from its proxy before any run trains on it)."""
+    stem = data_path[:-len(".zarr")] if data_path.endswith(".zarr") else data_path
+    return stem + SPEEDUP_SUFFIX
 
 
 def run_dir(runs: str, budget: str, task: str, obs_type: str, changes, seed: int,
@@ -192,7 +209,8 @@ def run_config(budget: str, task: str, obs_type: str, changes, seed: int, *, run
                run_changes: dict[str, Any] | None = None) -> RunConfig:
     """The ``RunConfig`` of one run: the budget's configs + the observation type's + the variant's changes, the
     seed, its run dir under ``runs`` and its demo buffer under ``data``. ``run_changes`` (a regime's): the number of
-    demos (``episodes``) and training settings (``train.<field>``)."""
+    demos (``episodes``), training settings (``train.<field>``) and ``speedup`` (train on the DemoSpeedup-accelerated
+    buffer of those demos, ``speedup_data_path``)."""
     b = BUDGETS[budget]
     run_changes = dict(run_changes or {})
     run_changes_name(run_changes)  # validates the keys
@@ -210,6 +228,8 @@ def run_config(budget: str, task: str, obs_type: str, changes, seed: int, *, run
         data_path = os.path.join(data, os.path.basename(external.default_data_path(task, demos)))
     else:
         data_path = os.path.join(data, os.path.basename(default_data_path(task, policy.encoder, demos)))
+    if run_changes.get("speedup"):
+        data_path = speedup_data_path(data_path)
     episodes = b.eval.episodes if eval_episodes is None else eval_episodes
     return RunConfig(task=task, out=run_dir(runs, budget, task, obs_type, changes, seed, run_changes), data=data_path,
                      episodes=demos, val_ratio=b.val_ratio, policy=policy, train=train,

@@ -23,17 +23,19 @@ It uses a trained run (``runs.store``), so it sits beside ``runs``; ``experiment
 Its place in the flow: data (a demo buffer) -> **speedup** (with a proxy policy that went through the whole flow)
 -> data again (the accelerated buffer, on which the policy is retrained).
 
-Public names re-exported here: ``SpeedupConfig``; ``kde_entropy``, ``frame_entropies``, ``saturated_fraction``;
+Public names re-exported here: ``SpeedupConfig``; ``kde_entropy``, ``frame_entropies``, ``ladder_entropies``, ``choose_bandwidth``,
+``saturated_fraction``;
 ``label_frames``, ``segments``, ``keep_indices``, ``retime_episode``, ``accelerate``, ``PRECISE``, ``CASUAL``;
 ``speedup_demos``, ``check_proxy_fits``, ``buffer_task``, ``SPEEDUP_ATTR``.
 """
 
 from hipolicy_jax.speedup.config import SpeedupConfig
-from hipolicy_jax.speedup.entropy import frame_entropies, kde_entropy, saturated_fraction
+from hipolicy_jax.speedup.entropy import (choose_bandwidth, frame_entropies, kde_entropy, ladder_entropies,
+                                          saturated_fraction)
 from hipolicy_jax.speedup.retime import (CASUAL, PRECISE, accelerate, keep_indices, label_frames, retime_episode,
                                          segments)
 from hipolicy_jax.speedup.stage import SPEEDUP_ATTR, buffer_task, check_proxy_fits, speedup_demos
 
 __all__ = ["CASUAL", "PRECISE", "SPEEDUP_ATTR", "SpeedupConfig", "accelerate", "buffer_task", "check_proxy_fits",
-           "frame_entropies", "kde_entropy", "keep_indices", "label_frames", "retime_episode", "saturated_fraction",
-           "segments", "speedup_demos"]
+           "choose_bandwidth", "frame_entropies", "kde_entropy", "keep_indices", "label_frames", "ladder_entropies",
+           "retime_episode", "saturated_fraction", "segments", "speedup_demos"]

@@ -10,6 +10,12 @@ Where the defaults come from:
 - ``bandwidth`` = 0.002 and ``density_eps`` = 1e-8: ``KDE.kde_entropy`` in ``act/detr/models/entropy_utils.py``
   (bandwidth hard-coded, "0.002 for insertion, 0.001 for transfer"; ``log(density + 1e-8)``), applied to the
   network's normalised actions, so here to the proxy's normalised actions (``Normalizer.normalize('action')``).
+- ``bandwidth_ladder`` = () and ``max_saturated`` = 0.5: not upstream's. Upstream tuned the bandwidth by hand per task
+  ("0.002 for insertion, 0.001 for transfer"). A bandwidth far below the spread of a proxy's samples puts every frame at
+  the estimator's ceiling log N, leaving the segmentation nothing to read. With a ladder, the stage measures the
+  entropies under ``bandwidth`` and each larger candidate, and takes the first under which at most ``max_saturated``
+  of the frames sit at the ceiling (``entropy.choose_bandwidth``); none fits: the last. This is a rule fixed before
+  seeing any policy's success, in place of upstream's tuning by hand.
 - ``casual_prefix`` = 50 frames: ``hdbscan_with_custom_merge`` marks the first 50 frames as noise, which become casual
   (label 1). Upstream records at 50 Hz, so this is its first second; our MJX tasks run at 10 Hz, where 50 frames is
   5 s (most of a press_button demo): pass ``casual_prefix`` 10 for the same duration.
@@ -43,6 +49,8 @@ class SpeedupConfig:
     casual_prefix: int = 50  # the first frames of every demo are casual (upstream: 50 frames at 50 Hz, i.e. 1 s)
     min_segment: int = 5  # frames: running-median window and the shortest precise segment (HDBSCAN min_cluster_size)
     precise_z: float = 0.0  # a frame is precise when its demo-z-scored, median-filtered entropy is below this
+    bandwidth_ladder: tuple[float, ...] = ()  # larger bandwidths to try when too many frames saturate (docstring)
+    max_saturated: float = 0.5  # the ladder's rule: the largest fraction of frames at the ceiling log N it accepts
     precise_rate: int = 2  # frames a precise frame advances (upstream low_v)
     casual_rate: int = 4  # frames a casual frame advances when the next ones are all casual (upstream high_v)
 
@@ -50,6 +58,10 @@ class SpeedupConfig:
         _check(isinstance(self.num_samples, int) and self.num_samples >= 2, "num_samples",
                "must be an integer >= 2 (a kernel density needs two samples)", self.num_samples)
         _check(self.bandwidth > 0, "bandwidth", "must be > 0", self.bandwidth)
+        _check(all(b > self.bandwidth for b in self.bandwidth_ladder)
+               and list(self.bandwidth_ladder) == sorted(set(self.bandwidth_ladder)), "bandwidth_ladder",
+               f"must be increasing bandwidths, each > bandwidth={self.bandwidth}", self.bandwidth_ladder)
+        _check(0.0 <= self.max_saturated <= 1.0, "max_saturated", "must be a fraction in [0, 1]", self.max_saturated)
         _check(self.density_eps >= 0, "density_eps", "must be >= 0", self.density_eps)
         _check(isinstance(self.casual_prefix, int) and self.casual_prefix >= 0, "casual_prefix",
                "must be an integer >= 0 (frames)", self.casual_prefix)
@@ -60,6 +72,10 @@ class SpeedupConfig:
         _check(isinstance(self.casual_rate, int) and self.casual_rate >= self.precise_rate, "casual_rate",
                f"must be an integer >= precise_rate={self.precise_rate} (casual parts go at least as fast)",
                self.casual_rate)
+
+    def bandwidths(self) -> tuple[float, ...]:
+        """The candidate bandwidths in the order the ladder rule tries them: ``bandwidth``, then the ladder."""
+        return (float(self.bandwidth), *(float(b) for b in self.bandwidth_ladder))
 
     def rate(self, label: int) -> int:
         """The declared rate of a segment label (``retime.PRECISE`` or ``retime.CASUAL``)."""

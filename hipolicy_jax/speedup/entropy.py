@@ -14,6 +14,9 @@ For samples of N(mu, s^2 I_D) and N -> oo it tends to (D/2) log(1 + s^2/h^2) + D
 (``sampling.make_sampler``) in fixed-size batches (one compile), takes the first action of the highest-frequency
 segment of each of the N chunks, normalised as the proxy was trained (``Normalizer.normalize('action')``), and
 returns one entropy per frame ``(T,)``. ``saturated_fraction`` says how many of them sit at the ceiling log N.
+``ladder_entropies`` returns them under each of ``SpeedupConfig.bandwidths()`` at once ``(K, T)`` (one sampling
+pass), and ``choose_bandwidth`` applies the ladder rule (the first candidate with at most ``max_saturated`` of the
+frames at the ceiling; none: the last).
 """
 
 from __future__ import annotations
@@ -51,6 +54,17 @@ def saturated_fraction(entropy, num_samples: int, tol: float = 1e-3) -> float:
     return float(np.mean(h >= np.log(num_samples) - tol)) if h.size else 0.0
 
 
+def choose_bandwidth(entropies, cfg: SpeedupConfig) -> int:
+    """The index into ``cfg.bandwidths()`` the ladder rule takes for ``entropies`` ``(K, T)`` (one row per
+    candidate): the first whose saturated fraction is at most ``cfg.max_saturated``, else the last."""
+    h = np.asarray(entropies, np.float64)
+    if h.ndim != 2 or h.shape[0] != len(cfg.bandwidths()):
+        raise ValueError(f"entropies: expected ({len(cfg.bandwidths())}, T), one row per candidate bandwidth, got "
+                         f"shape {h.shape}")
+    fractions = [saturated_fraction(row, cfg.num_samples) for row in h]
+    return next((i for i, f in enumerate(fractions) if f <= cfg.max_saturated), len(fractions) - 1)
+
+
 def frame_windows(episode_ends: np.ndarray, chunk) -> np.ndarray:
     """``(T, M, L_h)`` int64 observation frames of every frame t of every episode (``windowing.obs_offsets``),
     clamped to its episode: the window the policy sees at t, as in training and rollouts."""
@@ -65,13 +79,23 @@ def frame_windows(episode_ends: np.ndarray, chunk) -> np.ndarray:
 def frame_entropies(policy, buffer: ReplayBuffer, cfg: SpeedupConfig, key: jax.Array, *,
                     inference: InferenceConfig = InferenceConfig(), batch_size: int = 64,
                     progress: Callable[[int], None] | None = None) -> np.ndarray:
-    """Entropy ``(T,)`` float64 of the proxy's first action at every frame of ``buffer``.
+    """Entropy ``(T,)`` float64 of the proxy's first action at every frame of ``buffer``, under the bandwidth the
+    ladder rule chooses (``cfg.bandwidth`` when the ladder is empty); arguments as ``ladder_entropies``."""
+    h = ladder_entropies(policy, buffer, cfg, key, inference=inference, batch_size=batch_size, progress=progress)
+    return h[choose_bandwidth(h, cfg)]
+
+
+def ladder_entropies(policy, buffer: ReplayBuffer, cfg: SpeedupConfig, key: jax.Array, *,
+                     inference: InferenceConfig = InferenceConfig(), batch_size: int = 64,
+                     progress: Callable[[int], None] | None = None) -> np.ndarray:
+    """Entropy ``(K, T)`` float64 of the proxy's first action at every frame of ``buffer``, one row per candidate
+    bandwidth of ``cfg.bandwidths()`` (the same samples for every row).
 
     Args:
       policy: the proxy, a ``checkpoint.LoadedPolicy`` (``runs.store.load_run(...).policy``): ``cfg``, ``net``,
         ``params``, ``normalizer``, ``meta['action_dim']``.
       buffer: the demos; holds the proxy's observation keys (``stage.check_proxy_fits``).
-      cfg: ``num_samples`` N, ``bandwidth``, ``density_eps``.
+      cfg: ``num_samples`` N, ``bandwidths()``, ``density_eps``.
       key: PRNG key; batch i draws from ``fold_in(key, i)``, so the result is a function of the key.
       inference: sampler and steps (its ``num_samples`` is replaced by ``cfg.num_samples``).
       batch_size: frames per sampler call; the last batch is padded, so the sampler compiles once.
@@ -90,9 +114,9 @@ def frame_entropies(policy, buffer: ReplayBuffer, cfg: SpeedupConfig, key: jax.A
         obs = {k: buffer.data[k][windows[idx]] for k in pcfg.encoder.obs_keys}  # (B, M, L_h, ...) raw
         res = sampler(policy.params, policy.normalizer, obs, jax.random.fold_in(key, i))
         chunks = np.asarray(policy.normalizer.normalize("action", np.asarray(res.chunks)))  # (B, N, M*L_c, A)
-        h = kde_entropy(chunks[:, :, first, :], cfg.bandwidth, cfg.density_eps)  # (B,)
+        h = np.stack([kde_entropy(chunks[:, :, first, :], b, cfg.density_eps) for b in cfg.bandwidths()])  # (K, B)
         done = min(batch_size, num_frames - start)
-        out.append(h[:done])
+        out.append(h[:, :done])
         if progress is not None:
             progress(done)
-    return np.concatenate(out)
+    return np.concatenate(out, axis=1)

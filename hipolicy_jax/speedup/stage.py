@@ -2,13 +2,15 @@
 
 ``speedup_demos(data, proxy, out, cfg)`` reads the zarr buffer at ``data`` (``ReplayBuffer.load``), loads the proxy
 run (``runs.store.load_run``), refuses a proxy that does not fit the demos in one line (``check_proxy_fits``),
-measures every frame's entropy (``entropy.frame_entropies``), accelerates every episode (``retime.accelerate``) and
+measures every frame's entropy under each candidate bandwidth and takes the one the ladder rule chooses
+(``entropy.ladder_entropies``, ``choose_bandwidth``), accelerates every episode (``retime.accelerate``) and
 writes the result at ``out`` in the same layout (``data/<key>``, ``meta/episode_ends``), through a temporary sibling
 renamed into place. The source's root attributes are copied (``action_kinds`` among them), and the root attribute
 ``speedup`` (``SPEEDUP_ATTR``) records what was done: method, source, proxy run and step, task, config, sampler
 settings, seed, the action kinds used, per-episode original and new lengths, kept frames, segments with their rates,
 the per-frame entropies (source timeline) and the fraction of them at the estimator's ceiling log N
-(``entropy.saturated_fraction``: near 1, the bandwidth is too small for the proxy's samples).
+(``entropy.saturated_fraction``: near 1, the bandwidth is too small for the proxy's samples), the bandwidth used and
+that fraction under every candidate.
 
 A buffer's task (``buffer_task``): its root attribute ``task``, else the ``task`` of its ``speedup`` record, else the
 task its file name starts with (``data/<task>_...zarr``, as ``envs.demos.default_data_path`` names buffers), else
@@ -32,7 +34,7 @@ from hipolicy_jax.envs import TASKS
 from hipolicy_jax.jsonio import one_line
 from hipolicy_jax.runs.store import Run, load_run, run_inference
 from hipolicy_jax.speedup.config import SpeedupConfig
-from hipolicy_jax.speedup.entropy import frame_entropies, saturated_fraction
+from hipolicy_jax.speedup.entropy import choose_bandwidth, ladder_entropies, saturated_fraction
 from hipolicy_jax.speedup.retime import accelerate
 
 SPEEDUP_ATTR = "speedup"  # the accelerated buffer's root attribute: the record of what was done
@@ -151,8 +153,10 @@ def speedup_demos(data: str, proxy: str | Run, out: str, cfg: SpeedupConfig = Sp
     task = run.task if same_data else buffer_task(data, attrs)
     kinds = check_proxy_fits(buffer, run, data, task)
     inference = run_inference(run).sampler_settings()
-    entropy = frame_entropies(run.policy, buffer, cfg, jax.random.key(seed), inference=inference,
-                              batch_size=batch_size, progress=progress)
+    ladder = ladder_entropies(run.policy, buffer, cfg, jax.random.key(seed), inference=inference,
+                              batch_size=batch_size, progress=progress)  # (K, T): one row per candidate bandwidth
+    chosen = choose_bandwidth(ladder, cfg)
+    entropy = ladder[chosen]
     accelerated, episodes = accelerate(buffer, entropy, kinds, cfg)
     record = {"method": METHOD, "source": os.path.abspath(data), "proxy": run.run_dir, "proxy_step": run.policy.step,
               "task": task or run.task, "config": dataclasses.asdict(cfg),
@@ -164,6 +168,9 @@ def speedup_demos(data: str, proxy: str | Run, out: str, cfg: SpeedupConfig = Sp
               "new_lengths": [e["new_length"] for e in episodes],
               "kept": [e["kept"] for e in episodes], "segments": [e["segments"] for e in episodes],
               "saturated_fraction": saturated_fraction(entropy, cfg.num_samples),
+              "bandwidth": cfg.bandwidths()[chosen],
+              "saturated_by_bandwidth": {f"{b:g}": saturated_fraction(row, cfg.num_samples)
+                                         for b, row in zip(cfg.bandwidths(), ladder)},
               "entropy": [float(h) for h in entropy]}
     write_buffer(accelerated, out, {**attrs, SPEEDUP_ATTR: record}, overwrite=overwrite)
     return SpeedupResult(buffer, accelerated, entropy, record, out)
