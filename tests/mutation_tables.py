@@ -1,15 +1,15 @@
 """The mutation check of the recompute tests: edit each printed number of a copy of the tables in turn and see a
 check fail.
 
-A copy of ``results/**/*.md`` and ``README.md`` goes to a temporary directory. For every number printed in a table
+A copy of ``results/**/*.md`` and ``docs/results.md`` (the results page) goes to a temporary directory. For every number printed in a table
 row, and in the sentences the checks recompute (a table's cost line, findings.md's tally and bootstrap summary,
 budget.md's answer, the pilots' rules and choices, the plans' and the campaign's counts, the diagnosis's pooled
 lines), of every file ``recompute.py`` covers, its last digit is changed (0→1, …, 9→8) in the copy, that file's own
 checks run in this process (the records' side is cached, so an edit costs milliseconds), and the edit counts as
-caught when one of them fails. A table file's edits are judged by its own checks alone, not by the README
-comparison (which would catch them whatever the recomputation does); the README's generated sections (its copies of
-the table files, the campaign's cost sentence, the Meta-World tables' count of recorded runs) by the checks that
-read the README.
+caught when one of them fails. A table file's edits are judged by its own checks alone, not by the results page's
+comparison (which would catch them whatever the recomputation does); the results page's generated sections (its
+copies of the table files, the campaign's cost sentence, the Meta-World tables' count of recorded runs) by the checks
+that read the page.
 
 Numbers on the other lines of a table file (its notes describing the settings: protocol version, interval level,
 seeds, budget) are edited as well and tallied apart as notes, with the number of them a check catches anyway;
@@ -59,7 +59,7 @@ CHECKS = {
     "results/metaworld/diagnosis/diagnose.md": [lambda r: rc.check_diagnose(r, "displacements")],
     "results/metaworld/target/diagnosis/diagnose.md": [lambda r: rc.check_diagnose(r, "targets")],
     "results/metaworld/diagnosis/README.md": [rc.check_diagnosis_note, rc.check_diagnosis_note_prose],
-    "README.md": [rc.check_readme_copies, rc.check_campaign, rc.check_metaworld_plans],
+    rc.RESULTS_PAGE: [rc.check_readme_copies, rc.check_campaign, rc.check_metaworld_plans],
     "results/PROTOCOL.md": [rc.check_protocol_pilot_entries],
     "results/metaworld/PROTOCOL.md": [rc.check_protocol_pilot_entries],
 }
@@ -87,8 +87,8 @@ NUMBER = re.compile(r"\d+(?:\.\d+)?")
 
 
 def _readme_copy_lines(lines: list[str]) -> set[int]:
-    """The README's generated sections: from a table's begin marker to its end marker (the copies of the table
-    files, the campaign's cost sentence and the Meta-World tables' count of recorded runs)."""
+    """The results page's generated sections: from a table's begin marker to its end marker (the copies of the
+    table files, the campaign's cost sentence and the Meta-World tables' count of recorded runs)."""
     out, inside = set(), False
     for i, line in enumerate(lines):
         if line.startswith("<!-- end of"):
@@ -102,9 +102,10 @@ def _readme_copy_lines(lines: list[str]) -> set[int]:
 
 def sites(rel: str, text: str) -> list[tuple[int, int, str]]:
     """(line, offset of the digit to change, kind) for every printed number: kind 'cell' for table rows and checked
-    sentences (the README: every line of its copies), 'note' for the rest of a table file; commands left out."""
+    sentences (the results page: every line of its copies), 'note' for the rest of a table file; commands left
+    out."""
     lines = text.split("\n")
-    copies = _readme_copy_lines(lines) if rel == "README.md" else None
+    copies = _readme_copy_lines(lines) if rel == rc.RESULTS_PAGE else None
     if rel in ONLY_TABLES:  # the table starting so, to its last row
         start = next(i for i, line in enumerate(lines) if line.startswith(ONLY_TABLES[rel]))
         end = next(i for i in range(start, len(lines)) if not lines[i].startswith("|"))

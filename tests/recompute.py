@@ -11,7 +11,7 @@ among them; ``results/entropy.json`` keeps their per-seed summaries, from which 
 
 Every check here builds the cell text the records give (the tables' format: one decimal, p to two significant
 digits) and compares it with the printed cell, so an edit of any printed digit fails. Each ``check_*`` function
-reads the tables under ``root`` (a copy of the repository's ``results/`` and ``README.md`` for the mutation check,
+reads the tables under ``root`` (a copy of the repository's ``results/`` and ``docs/results.md`` for the mutation check,
 ``tests/mutation_tables.py``), always reads the records of this repository, and returns the number of cells it
 compared; the records' side is cached, so checking an edited copy again is cheap.
 """
@@ -1148,40 +1148,53 @@ def check_budget(root: str = ROOT) -> int:
     return tally.n
 
 
-# ------------------------------------------------------------------------------------------- the README's copies
+# ---------------------------------------------------------------------------------- the results page's copies
 
+# the page the campaign commands copy their tables into (their --readme; README.md before issue #61), relative to
+# the repository; its links and the file names in its titles are relative to the page
+RESULTS_PAGE = "docs/results.md"
+RESULTS_PAGE_DIR = os.path.dirname(RESULTS_PAGE)
 README_COPIES = ("results/metaworld/main.md", "results/metaworld/target/main.md", "results/findings.md",
                  "results/main.md", "results/execution.md", "results/main_rlow.md", "results/execution_rlow.md",
                  "results/ablation_rlow.md", "results/thresholds_rlow.md", "results/hparams_rlow.md",
                  "results/budget.md")
-_COPY = re.compile(r"^(#+) .* — `(results/[^`]+\.md)`$")
+_COPY = re.compile(r"^(#+) .* — `((?:\.\./)*results/[^`]+\.md)`$")
+
+
+def page_rel(rel: str) -> str:
+    """A repository path (``results/main.md``) as the results page names and links it (``../results/main.md``)."""
+    return os.path.relpath(rel, RESULTS_PAGE_DIR).replace(os.sep, "/")
 
 
 def check_readme_copies(root: str = ROOT) -> int:
-    """Each table file the README copies (between its generated-section markers) is there, line for line: its title
-    one heading level down and named by its path, its notes, cost line and tables as the file holds them (which the
-    checks above recompute), then its plot."""
-    lines = read(root, "README.md").splitlines()
-    starts = [(i, m.group(1), m.group(2)) for i, line in enumerate(lines) if (m := _COPY.match(line))]
+    """Each table file the results page (``RESULTS_PAGE``, docs/results.md; the README before issue #61) copies
+    between its generated-section markers is there, line for line: its title one heading level down and named by its
+    path relative to the page, its notes, cost line and tables as the file holds them (which the checks above
+    recompute), then its plot, linked relative to the page."""
+    page = RESULTS_PAGE
+    lines = read(root, page).splitlines()
+    starts = [(i, m.group(1), os.path.normpath(os.path.join(RESULTS_PAGE_DIR, m.group(2))).replace(os.sep, "/"))
+              for i, line in enumerate(lines) if (m := _COPY.match(line))]
     assert sorted(p for _, _, p in starts) == sorted(README_COPIES), (
-        f"README.md copies {[p for _, _, p in starts]}, expected {list(README_COPIES)}")
+        f"{page} copies {[p for _, _, p in starts]}, expected {list(README_COPIES)}")
     n = 0
     for k, (i, hashes, rel) in enumerate(starts):
         level = len(hashes)
         source = read(root, rel).strip().splitlines()
         want = ["#" * (level - 1) + line if line.startswith("#") else line for line in source]
-        want[0] = f"{want[0]} — `{rel}`"
+        want[0] = f"{want[0]} — `{page_rel(rel)}`"
         got = lines[i:i + len(want)]
         for j, (g, w) in enumerate(zip(got, want)):
-            assert g == w, f"README.md line {i + j + 1}, the copy of {rel}: {g!r} where {rel} has {w!r}"
+            assert g == w, f"{page} line {i + j + 1}, the copy of {rel}: {g!r} where {rel} has {w!r}"
             n += 1
-        assert len(got) == len(want), f"README.md: the copy of {rel} ends early"
+        assert len(got) == len(want), f"{page}: the copy of {rel} ends early"
         rest = lines[i + len(want):]
         end = next((j for j, line in enumerate(rest) if line.strip()), None)
         png = rel[:-3] + ".png"
         if os.path.exists(os.path.join(ROOT, png)):
-            assert end is not None and rest[end] == f"![{os.path.basename(png)}]({png})", (
-                f"README.md: the copy of {rel} is not followed by its plot, {png}: {rest[end] if end is not None else ''!r}")
+            assert end is not None and rest[end] == f"![{os.path.basename(png)}]({page_rel(png)})", (
+                f"{page}: the copy of {rel} is not followed by its plot, {page_rel(png)}: "
+                f"{rest[end] if end is not None else ''!r}")
     return n
 
 
@@ -1561,7 +1574,7 @@ CAMPAIGN_TABLES = ("findings.md", "main.md", "execution.md", "main_rlow.md", "ex
 def check_campaign(root: str = ROOT) -> int:
     """results/campaign.md and campaign_plan.md: the campaign's cost from every record of the cpu budget, the number
     of evaluations its tables plan and how many are recorded (all: nothing left, an empty plan), its tables; the
-    README's copy of the cost sentence."""
+    results page's copy of the cost sentence."""
     tally = Tally("results/campaign.md")
     text = read(root, os.path.join("results", "campaign.md"))
     planned, recorded = campaign_jobs()
@@ -1571,7 +1584,7 @@ def check_campaign(root: str = ROOT) -> int:
                + "\n")
     plan = read(root, os.path.join("results", "campaign_plan.md"))
     progress = f"Interim: {recorded} of {planned} evaluations recorded; what is left and its estimated cost: "
-    readme = read(root, "README.md")
+    readme = read(root, RESULTS_PAGE)
     marker = "<!-- campaign tables: written by `python -m experiments.paper campaign` from results/*.md -->\n\n"
     if interim:
         tally.text(text, "\n\n" + progress + "[campaign_plan.md](campaign_plan.md).")
@@ -1595,7 +1608,7 @@ def check_campaign(root: str = ROOT) -> int:
         assert abs(rows_h - float(total.group(1))) <= 0.05 * (len(printed) - 1) + 1e-9, \
             f"results/campaign_plan.md: its rows' CPU-hours sum to {rows_h:.1f}, its sentence says {total.group(1)}"
         tally.n += len(printed)
-        tally.text(readme, marker + progress + "[campaign_plan.md](results/campaign_plan.md).\n\n"
+        tally.text(readme, marker + progress + f"[campaign_plan.md]({page_rel('results/campaign_plan.md')}).\n\n"
                    + campaign_cost_sentence(interim) + "\n\n")
     else:
         assert "Interim:" not in text, "results/campaign.md: every evaluation is recorded, but it says it is interim"
@@ -1608,11 +1621,11 @@ def check_campaign(root: str = ROOT) -> int:
 
 def check_metaworld_plans(root: str = ROOT) -> int:
     """results/metaworld/plan.md and target/plan.md: nothing pending of their tables' evaluations, and what the
-    metaworld records spent; the README's line counting each table's recorded runs."""
+    metaworld records spent; the results page's line counting each table's recorded runs."""
     s = spent("metaworld")
     spent_h = (s["train_s"] + s["eval_s"]) / 3600
     n = 0
-    readme = read(root, "README.md")
+    readme = read(root, RESULTS_PAGE)
     for table, plan in (("main", os.path.join("results", "metaworld", "plan.md")),
                         ("amendment-1", os.path.join("results", "metaworld", "target", "plan.md"))):
         text = read(ROOT, METAWORLD_TABLES[table])

@@ -1,5 +1,6 @@
 """docs/execution.md's numbers recompute from the committed expert records: every cell of its Meta-World and MJX
-expert tables, and the shares quoted in its text."""
+expert tables, and the shares quoted in its text; the expert counts docs/metaworld.md quotes, and the fusion verdict
+docs/architecture.md and docs/fidelity.md quote from the ablation table."""
 
 from __future__ import annotations
 
@@ -119,9 +120,10 @@ def test_metaworld_amendment_2_task_rule_and_counts():
         assert f"**{t}** ({c['1']['successes']}/{c['2']['successes']}/{c['3']['successes']})" in text
 
 
-def test_readme_metaworld_recipe_counts():
+def test_metaworld_doc_recipe_counts():
+    """docs/metaworld.md (the README's Meta-World section before issue #61): the chunked expert's successes."""
     tasks = _metaworld_tasks()
-    with open(os.path.join(ROOT, "README.md")) as f:
+    with open(os.path.join(ROOT, "docs", "metaworld.md")) as f:
         text = " ".join(f.read().split())
     summed = [sum(tasks[t]["delta+summed@waypoint"][s]["successes"] for t in tasks) for s in "23"]
     every = [sum(tasks[t]["delta"][s]["successes"] for t in tasks) for s in "23"]
@@ -146,8 +148,9 @@ def test_mjx_text_claims():
 
 
 def test_fusion_verdict_quotes_the_ablation_table():
-    """The README's and docs/fidelity.md's sentence on the release's fusion quote results/ablation_rlow.md's
-    Hier. − Release fusion cells (the table itself is recomputed from the records by test_findings_recompute)."""
+    """docs/architecture.md's (the README's conventions before issue #61) and docs/fidelity.md's sentence on the
+    release's fusion quote results/ablation_rlow.md's Hier. − Release fusion cells (the table itself is recomputed
+    from the records by test_findings_recompute)."""
     with open(os.path.join(ROOT, "results", "ablation_rlow.md")) as f:
         lines = [ln for ln in f if ln.startswith("| ")]
     header = [c.strip() for c in lines[0].strip().strip("|").split("|")]
@@ -160,7 +163,7 @@ def test_fusion_verdict_quotes_the_ablation_table():
         interval, p = cell.split(", p=")
         return interval.replace("-", "−"), p.split()[0]
 
-    with open(os.path.join(ROOT, "README.md")) as f:
+    with open(os.path.join(ROOT, "docs", "architecture.md")) as f:
         readme = " ".join(f.read().split())
     assert (f"Hier. − Release fusion averages {signed(precise)[0]} points on the precise tasks and "
             f"{signed(total)[0]} over all four (p = {signed(total)[1]})") in readme

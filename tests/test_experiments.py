@@ -342,7 +342,7 @@ def test_budget_table_and_its_figure_of_success_and_steps(tmp_path, monkeypatch)
     fake = _fake_records(["DP", "DP+HiPolicy"], ("press_button", "stack_cubes"), (0, 1, 2), rng)
     fake += [{**r, "regime": {"train.num_steps": longer}} for r in
              _fake_records(["DP", "DP+HiPolicy"], ("press_button", "stack_cubes"), (0, 1, 2), rng)]
-    monkeypatch.setattr(tables, "collect", lambda args, columns: fake)
+    monkeypatch.setattr(tables.common, "collect", lambda args, columns: fake)
     drawn = []
     save = matplotlib.figure.Figure.savefig
 
@@ -412,7 +412,7 @@ def test_gap_trend_follows_the_protocols_rule():
 
 def test_paper_tables_on_fake_numbers(tmp_path, monkeypatch):
     rng = np.random.default_rng(0)
-    monkeypatch.setattr(tables, "collect", lambda args, columns: _fake_records(
+    monkeypatch.setattr(tables.common, "collect", lambda args, columns: _fake_records(
         [c.label for c in columns], args.tasks, args.seeds, rng))
     common = dict(budget="smoke", seeds=(0, 1, 2), runs=str(tmp_path / "runs"), results=str(tmp_path / "res"),
                   data=str(tmp_path / "data"), progress=False)
@@ -1112,6 +1112,23 @@ def test_readme_section_from_table_files(tmp_path):
     other = tmp_path / "OTHER.md"
     other.write_text("no markers\n")
     assert not update_readme(str(other), section) and other.read_text() == "no markers\n"
+
+
+def test_campaign_writes_its_tables_into_the_results_page():
+    """Issue #61: the campaign's ``--readme`` (the flag keeps its name) defaults to docs/results.md, the page that
+    holds its markers once (the README, which held them before, holds none); the committed campaign's own command
+    line, printed with ``--readme README.md``, still parses."""
+    from hipolicy_jax.campaigns.campaign import README_BEGIN, README_END
+    root = Path(__file__).resolve().parents[1]
+    args = paper.parse_args(["campaign"])
+    assert args.readme == "docs/results.md"
+    text = (root / args.readme).read_text()
+    assert text.count(README_BEGIN) == 1 and text.count(README_END) == 1
+    assert text.index(README_BEGIN) < text.index(README_END)
+    assert README_BEGIN not in (root / "README.md").read_text()
+    command = re.search(r"^Command: `(.*)`$", (root / "results" / "campaign.md").read_text(), re.M).group(1)
+    old = paper.parse_args(shlex.split(command)[3:])
+    assert type(old) is type(args) and old.readme in ("README.md", "docs/results.md")
 
 
 def test_evaluate_compute_dtype_rebuilds_the_network_only(tiny):

@@ -5,15 +5,15 @@ What a reader quotes — ``results/findings.md``; the campaign's tables (``main.
 ``budget.md``), its pilot, index and plan (``pilot.md``, ``campaign.md``, ``campaign_plan.md``) and version 1's
 ``entropy.md``; the Meta-World tables (``results/metaworld/main.md``, amendment 1's ``target/main.md``), their
 pilot, plans and post hoc diagnosis (``diagnosis/diagnose.md``, ``target/diagnosis/diagnose.md``, the basketball
-note ``diagnosis/README.md``); and the README's generated copies of them — is rebuilt by ``recompute.py`` cell by
-cell (point, interval, p, verdict, every column, every average and total row, the cost lines, the settings lines
-and the notes' record-given numbers) from ``results/runs/<budget>/<task>/<obs>/<variant>/seed<k>.json`` and the
-committed diagnosis files, with json, numpy and scipy alone — not the project's statistics module, not its table
-code, not the tables' JSON (``entropy.json`` excepted: its runs are not among the records) — and compared with the
-printed text, so a table left stale after new records, a pairing of the wrong seeds or episodes, a slip in an
-interval, a p or a verdict, or an edit of one printed digit fails here, naming the cell. A missing file or section
-fails, it is never skipped, and each test counts the cells it compared and fails below the count stated beside it
-(the committed tables' full size).
+note ``diagnosis/README.md``); and the results page's generated copies of them (``docs/results.md``) — is rebuilt by
+``recompute.py`` cell by cell (point, interval, p, verdict, every column, every average and total row, the cost
+lines, the settings lines and the notes' record-given numbers) from
+``results/runs/<budget>/<task>/<obs>/<variant>/seed<k>.json`` and the committed diagnosis files, with json, numpy
+and scipy alone — not the project's statistics module, not its table code, not the tables' JSON (``entropy.json``
+excepted: its runs are not among the records) — and compared with the printed text, so a table left stale after new
+records, a pairing of the wrong seeds or episodes, a slip in an interval, a p or a verdict, or an edit of one
+printed digit fails here, naming the cell. A missing file or section fails, it is never skipped, and each test
+counts the cells it compared and fails below the count stated beside it (the committed tables' full size).
 
 The mutation check (``tests/mutation_tables.py``, the slow test ``tests/test_tables_mutation.py``) edits each
 printed number of a copy of the tables in turn and shows that these checks fail on every edit of a cell.
@@ -32,7 +32,7 @@ MINIMUM = {
     "findings": 114, "speed": 42, "budget": 25, "bootstrap": 287,
     "metaworld main": 354, "metaworld amendment-1": 166, "amendment secondary": 75,
     "main": 81, "main_rlow": 57, "execution": 129, "execution_rlow": 129, "ablation_rlow": 65, "hparams_rlow": 45,
-    "thresholds_rlow": 63, "budget.md": 83, "README": 395, "diagnose displacements": 169, "diagnose targets": 78,
+    "thresholds_rlow": 63, "budget.md": 83, "results page": 395, "diagnose displacements": 169, "diagnose targets": 78,
     "diagnosis note": 42, "diagnosis reading": 76, "protocol pilots": 32, "cpu pilot": 26, "metaworld pilot": 43, "campaign": 29, "metaworld plans": 42, "entropy": 32,
 }
 
@@ -121,9 +121,10 @@ def test_budget_table_recomputes_from_the_records():
 
 
 def test_readme_copies_are_the_committed_tables():
-    """The README's generated sections hold each table file line for line (which the tests above recompute)."""
+    """The results page's generated sections (docs/results.md, the README's before issue #61) hold each table file
+    line for line (which the tests above recompute)."""
     n = rc.check_readme_copies(rc.ROOT)
-    assert n >= MINIMUM["README"], f"README.md: {n} lines checked"
+    assert n >= MINIMUM["results page"], f"{rc.RESULTS_PAGE}: {n} lines checked"
 
 
 @pytest.mark.parametrize("which", ["displacements", "targets"])
@@ -164,7 +165,8 @@ def test_the_protocols_pilot_entries_are_the_pilots_numbers():
 
 def test_campaign_index_and_plans_recompute_from_the_records():
     """campaign.md's cost of every cpu record and count of the tables' evaluations, campaign_plan.md's '366 of 366'
-    with nothing left, the Meta-World plans' pending count and spent CPU-hours, and the README's copies of them."""
+    with nothing left, the Meta-World plans' pending count and spent CPU-hours, and the results page's copies of
+    them."""
     n = rc.check_campaign(rc.ROOT)
     assert n >= MINIMUM["campaign"], f"campaign: {n} cells checked"
     n = rc.check_metaworld_plans(rc.ROOT)

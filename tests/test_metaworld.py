@@ -744,6 +744,30 @@ def test_main_table_rewrites_its_readme_section_only(tmp_path):
     assert bare.read_text() == "no markers\n"
 
 
+def test_main_writes_its_tables_into_the_results_page():
+    """Issue #61: ``main --readme`` (the flag keeps its name) defaults to docs/results.md, which holds each committed
+    table's markers once (the README holds none); each table's own command line, printed with ``--readme README.md``,
+    still parses."""
+    import re
+    import shlex
+
+    from experiments.metaworld import parse_args
+    from hipolicy_jax.campaigns.metaworld import readme_markers
+
+    args = parse_args(["main"])
+    assert args.readme == "docs/results.md"
+    text = open(os.path.join(ROOT, args.readme)).read()
+    readme = open(os.path.join(ROOT, "README.md")).read()
+    for results in ("results/metaworld", "results/metaworld/target"):
+        begin, end = readme_markers(results)
+        assert text.count(begin) == 1 and text.count(end) == 1 and text.index(begin) < text.index(end)
+        assert begin not in readme
+        with open(os.path.join(ROOT, results, "main.md")) as f:
+            command = re.search(r"^Command: `(.*)`$", f.read(), re.M).group(1)
+        old = parse_args(shlex.split(command)[3:])
+        assert type(old) is type(args) and old.results == results and old.readme in ("README.md", "docs/results.md")
+
+
 def test_main_no_tables_writes_only_the_plan(tmp_path):
     """``main --tasks X --no-tables`` (a run narrowed to force a few jobs) leaves ``main.md`` and the README table
     alone and ends by writing its plan of what is left; without the flag the same call rebuilds both."""

@@ -78,7 +78,7 @@ def test_semantics_table_recomputes(tmp_path, monkeypatch):
     labels = [c.label for c in tables.semantics_columns(args)]
     assert labels[:2] == ["DP (rate)", "DP+HiPolicy (rate)"] and "DP+HiPolicy (waypoint, 0.25 m/s)" in labels
     fake = _records(labels, args.tasks, args.seeds, rng)
-    monkeypatch.setattr(tables, "collect", lambda a, columns: fake)
+    monkeypatch.setattr(tables.common, "collect", lambda a, columns: fake)
     text = open(paper.main(args)).read()
     rows = [[c.strip() for c in line.strip("|").split(" | ")] for line in text.splitlines()
             if line.startswith("| ") and not line.startswith("| :---")][1:]

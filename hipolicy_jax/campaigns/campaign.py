@@ -30,7 +30,7 @@ from hipolicy_jax.config import InferenceConfig, PolicyConfig
 from hipolicy_jax.data.replay_buffer import collection_lock
 from hipolicy_jax.evaluation import calibration
 from hipolicy_jax.evaluation.evaluator import Evaluator, result_record
-from hipolicy_jax.campaigns.budgets import BUDGETS, run_config
+from hipolicy_jax.campaigns.budgets import BUDGETS, SPEEDUP_SUFFIX, run_config
 from hipolicy_jax.campaigns.report import changes_text, cpu_s
 from hipolicy_jax.runs.calibrate import run_entropies
 from hipolicy_jax.runs.external import external_summary
@@ -283,6 +283,9 @@ class Campaign:
         from hipolicy_jax.runs.external import collect_demos
 
         path = cfg.data_path()
+        if path.endswith(SPEEDUP_SUFFIX) and not os.path.exists(path):  # training would collect plain demos there
+            raise FileNotFoundError(f"{path}: no DemoSpeedup-accelerated buffer; it is made from its proxy run by "
+                                    f"python -m experiments.paper speedup before any run trains on it")
         if not cfg.external or os.path.exists(path):
             return path
         points = self.run_config(cfg.task, Column("pc", "pointcloud"), seed).policy.encoder.num_points
@@ -796,9 +799,10 @@ README_END = "<!-- end of campaign tables -->"
 
 
 def readme_section(table_paths: list[str], readme_dir: str, level: int = 3) -> str:
-    """The README's section from the tables' markdown files: each table's title at heading ``level`` (one below the
-    README's results heading) named by its file, its other headings moved down as far, its notes (with the cost
-    line), tables and plot; links relative to the README."""
+    """The results page's section (``--readme``, docs/results.md; the README before issue #61) from the tables'
+    markdown files: each table's title at heading ``level`` (one below the page's heading) named by its file
+    relative to the page, its other headings moved down as far, its notes (with the cost line), tables and plot;
+    links relative to the page (``readme_dir``)."""
     parts = []
     for md in table_paths:
         with open(md) as f:
@@ -816,8 +820,8 @@ def readme_section(table_paths: list[str], readme_dir: str, level: int = 3) -> s
 
 
 def update_readme(readme: str, section: str, begin: str = README_BEGIN, end: str = README_END) -> bool:
-    """Replace what stands between the markers ``begin`` and ``end`` in ``readme`` with ``section``; False (and
-    nothing written) when the markers are missing."""
+    """Replace what stands between the markers ``begin`` and ``end`` in ``readme`` (the results page) with
+    ``section``; False (and nothing written) when the markers are missing."""
     with open(readme) as f:
         text = f.read()
     start, stop = text.find(begin), text.find(end)

@@ -103,11 +103,12 @@ class MainArgs(MetaWorldArgs):
     published: str = "results/metaworld/dp3_published.json"  # DP3's Table XVIII
     until: str = ""  # HH:MM or YYYY-MM-DD HH:MM: start only the jobs estimated to end before it
     plan: bool = False  # write what is left (results/metaworld/plan.md) and stop
-    # end by rebuilding the table and the README section from the records; --no-tables writes only the plan of what
-    # is left, so that a run narrowed to a few tasks (--tasks) leaves the full table alone
+    # end by rebuilding the table and the results page's section from the records; --no-tables writes only the plan
+    # of what is left, so that a run narrowed to a few tasks (--tasks) leaves the full table alone
     tables: bool = True
-    # its section for this table (between readme_markers(results)) is rewritten from the table; '' = leave it
-    readme: str = "README.md"
+    # the results page whose section for this table (between readme_markers(results)) is rewritten from the table
+    # (README.md before issue #61; old command lines still parse); '' = leave it
+    readme: str = "docs/results.md"
 
     def default_tasks(self) -> tuple[str, ...]:
         return protocol_tasks(METAWORLD_STATE_TASKS)
@@ -312,15 +313,16 @@ def write_plan_file(results: str, lines: list[str]) -> str:
 
 
 def readme_markers(results: str) -> tuple[str, str]:
-    """The README's markers around the section ``main --results RESULTS`` writes: one pair per table."""
+    """The results page's markers around the section ``main --results RESULTS`` writes: one pair per table."""
     md = os.path.normpath(os.path.join(results, "main.md"))
     return (f"<!-- Meta-World table: written by `python -m experiments.metaworld main` from {md} -->",
             f"<!-- end of Meta-World table {md} -->")
 
 
 def write_readme_section(args: MainArgs, md: str, recorded: int, jobs: int) -> None:
-    """The README's section for this table (a level-4 copy of ``md`` with its plot, under a line saying how many of
-    the table's runs are recorded); the README is left as is, with a line saying so, when its markers are absent."""
+    """The results page's section for this table (``--readme``, docs/results.md: a level-4 copy of ``md`` with its
+    plot, under a line saying how many of the table's runs are recorded; links relative to the page); the page is
+    left as is, with a line saying so, when its markers are absent."""
     readme_dir = os.path.dirname(os.path.abspath(args.readme))
     plan = os.path.relpath(os.path.join(args.results, "plan.md"), readme_dir)
     head = (f"{recorded} of {jobs} runs recorded" + ("" if recorded == jobs else f"; what is left and its estimated "
@@ -329,7 +331,7 @@ def write_readme_section(args: MainArgs, md: str, recorded: int, jobs: int) -> N
     if update_readme(args.readme, head + "\n\n" + readme_section([md], readme_dir, level=4), begin, end):
         print(f"updated the Meta-World table in {args.readme}")
     else:
-        print(f"{args.readme}: no markers ({begin!r} ... {end!r}); README left as is")
+        print(f"{args.readme}: no markers ({begin!r} ... {end!r}); left as is")
 
 
 def published_numbers(path: str) -> dict[str, dict]:
