@@ -1,4 +1,4 @@
-"""Assemble ``benchmarks/results/PERFORMANCE.md`` (the README "Performance" section) from the result JSONs.
+"""Assemble ``benchmarks/results/PERFORMANCE.md`` (linked from docs/performance.md) from the result JSONs.
 
     python -m benchmarks.report [--device cpu] [--notes benchmarks/results/notes_cpu.md]
 

@@ -12,7 +12,10 @@ those records. It sits above ``runs`` (one run's lifecycle: train, calibrate, ev
   one module a table (``tables.main``, ``tables.ablation``, ...), what they share (``tables.common``), the findings
   (``tables.findings``), the registry (``tables.registry``) and the campaign driver (``tables.protocol``);
 - ``metaworld``: the Meta-World benchmark's pilot, campaign and table (``experiments.metaworld``);
-- ``metaworld_amendment2``: amendment 2 of the Meta-World protocol (its pilot and campaign).
+- ``metaworld_amendment2``: amendment 2 of the Meta-World protocol (its pilot and campaign);
+- ``speedup``: amendment 5 of the MJX protocol, HiPolicy against DemoSpeedup (``experiments.paper speedup``): each
+  task's accelerated demos made from a proxy, five methods, the table;
+- ``glance``: the README's results at a glance (its table's cells read from the result tables, and its figure).
 
 A new MJX table is one module in ``tables`` (its args class with its ``TABLE``, its columns and its builder) and
 one line in ``tables.registry.ENTRIES``; ``experiments.paper`` then has its sub-command.
