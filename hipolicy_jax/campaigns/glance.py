@@ -5,12 +5,11 @@ training (``results/budget.md``: press_button and stack_cubes, 24,000 steps) and
 both columns have successful episodes). Every evaluation behind them executes one action per control step (``rate``
 semantics, docs/execution.md).
 
-    python -m hipolicy_jax.campaigns.glance            # docs/glance.png from the committed tables
+    python -m experiments.glance            # docs/glance.png from the committed tables
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
 import os
@@ -131,22 +130,3 @@ def plot_glance(rows: list[GlanceRow], path: str) -> dict[str, dict[str, list[fl
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return plotted
-
-
-def main(argv: list[str] | None = None) -> str:
-    p = argparse.ArgumentParser(prog="python -m hipolicy_jax.campaigns.glance", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--root", default=".", help="the repository (its committed tables)")
-    p.add_argument("--out", default=FIGURE, help="the figure (default: %(default)s)")
-    args = p.parse_args(argv)
-    rows = glance_rows(args.root)
-    plot_glance(rows, args.out)
-    for r in rows:
-        print(f"{r.label}: success {r.dp_success} -> {r.hip_success} ({r.difference}); steps {r.dp_steps} -> "
-              f"{r.hip_steps} ({fewer_steps(r):.0f} % fewer) [{r.source}]")
-    print(f"wrote {args.out}")
-    return args.out
-
-
-if __name__ == "__main__":
-    main()
