@@ -121,7 +121,7 @@ def test_reading_rule():
     assert a2.reading_rule(e(0.1, math.nan, math.nan)) == "–"
 
 
-def test_job_list_order_steps_batch_and_variant_names(tmp_path):
+def test_job_list_order_steps_batch_and_variant_names(tmp_path, monkeypatch):
     args = _args(tmp_path, fraction=0.5)
     jobs = a2.amendment2_jobs(args)
     tasks = [f"metaworld-target:{t}" for t in a2.TASKS]
@@ -151,8 +151,12 @@ def test_job_list_order_steps_batch_and_variant_names(tmp_path):
                                                                                       "absolute")
     variant = f"hipolicy_kinds-ddda_batchsize128_t{TOTALS['bin-picking']}"
     assert os.path.basename(os.path.dirname(cfg.out_dir())) == variant
+    # the pilot entry of 2026-12-07 (results/metaworld/PROTOCOL.md) fixed f and K as pilot_choice.json says
+    choice = json.load(open(os.path.join(a2.RESULTS, "pilot_choice.json")))
+    assert (budgets_lib.METAWORLD_A2_FRACTION, budgets_lib.METAWORLD_A2_TASKS) == (0.25, 5)
+    assert (choice["fraction"], choice["budget_rule"]["fraction"], choice["budget_rule"]["tasks"]) == (0.25, 0.25, 5)
     # f not fixed: one line naming the field and the pilot
-    assert budgets_lib.METAWORLD_A2_FRACTION is None
+    monkeypatch.setattr(budgets_lib, "METAWORLD_A2_FRACTION", None)
     with pytest.raises(ValueError, match="fraction: amendment 2's training length f is not fixed yet"):
         a2.amendment2_jobs(_args(tmp_path))
     with pytest.raises(ValueError, match="tasks: arm b's tasks are not fixed yet"):

@@ -77,8 +77,8 @@ METAWORLD_POINTCLOUD_TASKS: int | None = 0  # the pilot entry of 2026-12-05 (rul
 # its pilot (`python -m experiments.metaworld pilot2`); None until then (its main runs refuse to start before):
 # the plateau rule's fraction f of T_task, the budget rule's arm-A task count K (the first K of its five tasks) and
 # arm B's task count (the first of arm A's list that fit 20 CPU-hours).
-METAWORLD_A2_FRACTION: float | None = None
-METAWORLD_A2_TASKS: int | None = None
+METAWORLD_A2_FRACTION: float | None = 0.25  # the pilot entry of 2026-12-07 (plateau rule)
+METAWORLD_A2_TASKS: int | None = 5  # the pilot entry of 2026-12-07 (budget rule: all five fit)
 METAWORLD_A2_B_TASKS: int | None = None
 # The Meta-World pilot: DP, seed 0, 8000 steps with checkpoints at 1000 / 2000 / 4000 / 8000 evaluated.
 METAWORLD_PILOT = {"train.num_steps": 8000, "train.ckpt_every": 1000}
