@@ -604,3 +604,19 @@ def test_mjx_columns_take_closed_loop_thresholds_too(monkeypatch):
     th = camp._thresholds(run, col._replace(calibration="success"), ev=None, seed=2, inference=inference)
     assert th == (-math.inf, 0.3, 0.4, math.inf) and calls[-1] == ("success", 50, 2, 0.05)
     assert camp._thresholds(run, col._replace(guided=False), ev=None, seed=2) is None
+
+
+def test_docs_quote_the_pilots_numbers():
+    """docs/metaworld.md's pilot sentence and the protocol's pilot entry print the success per fraction that
+    pilot_choice.json holds (bin-picking first, hand-insert second), and the f and K it chose."""
+    choice = json.load(open(os.path.join(a2.RESULTS, "pilot_choice.json")))
+    per_task = list(zip(*(choice["success"][f] for f in ("0.25", "0.5", "0.75", "1.0"))))
+    docs = " ".join(open(os.path.join("docs", "metaworld.md")).read().split())
+    for task, rates in zip(("bin-picking", "hand-insert"), per_task):
+        assert f"{task} " + " / ".join(f"{100 * r:.0f}" for r in rates) + " %" in docs, task
+    protocol = open(os.path.join("results", "metaworld", "PROTOCOL.md")).read()
+    for task, rates in zip(("bin-picking", "hand-insert"), per_task):
+        assert f"| {task} | " + " | ".join(f"{100 * r:.0f} %" for r in rates) + " |" in protocol, task
+    means = [sum(choice["success"][f]) / 2 for f in ("0.25", "0.5", "0.75", "1.0")]
+    assert "| mean | " + " | ".join(f"{100 * m:.1f} %" for m in means) + " |" in protocol
+    assert choice["fraction"] == 0.25 and "**f = 0.25**" in protocol and "(K = 5)" in protocol
