@@ -391,8 +391,9 @@ def write_plan(args: SpeedupArgs, costs: list[dict]) -> str:
 
 
 def speedup_table(args: SpeedupArgs) -> str:
-    """Run what is pending (unless ``--from-records``; ``--plan`` only writes what is left), making each task's
-    accelerated buffer before its DemoSpeedup runs, then write the table from the records alone."""
+    """Run what is pending (unless ``--from-records``; ``--plan`` only writes what is left) task by task: the
+    networks on the plain demos (the proxy among them), the task's accelerated buffer, then the networks trained on
+    it; then write the table from the records alone."""
     all_jobs = jobs(args)
     if not args.from_records:
         from hipolicy_jax.campaigns.campaign import shard
@@ -402,11 +403,13 @@ def speedup_table(args: SpeedupArgs) -> str:
         costs = CostModel(args.records, args.runs).estimate(camp, mine)
         if args.plan:
             return write_plan(args, CostModel(args.records, args.runs).estimate(camp, all_jobs))
-        for task in args.tasks:  # the proxies and stages first: every DemoSpeedup run needs its task's buffer
-            if any(c["job"].task == task and dict(c["job"].changes).get("speedup") and not c["done"]
-                   for c in costs):
-                ensure_accelerated(args, task)
-        work_off(camp, costs, run_of(args), until=args.until, progress=args.progress)
+        for task in args.tasks:  # per task: the plain demos' networks, then the stage, then the accelerated ones
+            plain = [c for c in costs if c["job"].task == task and not dict(c["job"].changes).get("speedup")]
+            fast = [c for c in costs if c["job"].task == task and dict(c["job"].changes).get("speedup")]
+            work_off(camp, plain, run_of(args), until=args.until, progress=args.progress)
+            if any(not c["done"] for c in fast):
+                ensure_accelerated(args, task)  # trains the proxy here if another shard has not
+                work_off(camp, fast, run_of(args), until=args.until, progress=args.progress)
         if not args.tables:
             return write_plan(args, CostModel(args.records, args.runs).estimate(camp, all_jobs))
     records, missing, stale = table_records(args, all_jobs)
