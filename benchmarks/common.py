@@ -334,19 +334,21 @@ def write_results(name: str, payload: dict, out_dir: str | None = None, peaks: d
     return path
 
 
-def report_rows(name: str, argv, args, rows: list[dict], table: str, module: str | None = None, **extra) -> dict:
+def report_rows(name: str, argv, args, rows: list[dict], table: str, module: str | None = None,
+                peaks: dict | None = None, **extra) -> dict:
     """Print ``table``, write ``{command, args, **extra, rows, table_md}`` as the benchmark's JSON; → the payload.
     ``argv``: the ``main(argv)`` argument (None: ``sys.argv[1:]``); ``args``: the parsed namespace; ``module``:
     the benchmark's module under ``benchmarks`` when the JSON's ``name`` is not (``profile_eval`` for
     ``profile_eval_compare``, ``studies.precision`` for ``precision``). The JSON goes to ``args.out_dir``, else
-    ``default_results_dir(module)``."""
+    ``default_results_dir(module)``; ``peaks``: the machine peaks measured earlier in this process, for the JSON's
+    ``machine`` entry (default: measured as it is written, ``write_results``)."""
     import sys
 
     print(table)
     payload = {"command": f"python -m benchmarks.{module or name} " + " ".join(sys.argv[1:] if argv is None else argv),
                "args": {k: v for k, v in vars(args).items() if k != "out_dir"}, **extra, "rows": rows,
                "table_md": table}
-    print(f"wrote {write_results(name, payload, args.out_dir or default_results_dir(module or name))}")
+    print(f"wrote {write_results(name, payload, args.out_dir or default_results_dir(module or name), peaks)}")
     return payload
 
 

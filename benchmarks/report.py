@@ -170,7 +170,8 @@ def render(device: str, notes: str = "", results_dir: str = RESULTS_DIR,
             continue
         with open(path) as f:
             res = jsonio.loads(f.read())
-        out += [f"### {title}", "", f"`{res['command'].strip()}` on {res['device_description']} "
+        cpu = ((res.get("machine") or {}).get("cpu_model") or "unknown").split(" (")[0]
+        out += [f"### {title}", "", f"`{res['command'].strip()}` on {res['device_description']}, {cpu} "
                 f"(jax {res['jax_version']}, {res['time']})", ""]
         if name.startswith("sampling"):
             peak = res["machine_peak"]

@@ -73,6 +73,17 @@ def policy_loss(params, batch: dict, key: jax.Array, *, net, head: GenerativeHea
     return jnp.mean(jnp.square(pred - example.target))
 
 
+def apply_gradients(state: TrainState, grads, tx: optax.GradientTransformation, train_cfg: TrainConfig) -> TrainState:
+    """One update of ``state`` by ``grads``: ``tx`` (AdamW under the schedule), then the EMA (``ema_decay``)."""
+    updates, opt_state = tx.update(grads, state.opt_state, state.params)
+    params = optax.apply_updates(state.params, updates)
+    if train_cfg.ema:
+        ema = optax.incremental_update(params, state.ema_params, 1.0 - ema_decay(state.step, train_cfg))
+    else:
+        ema = params
+    return TrainState(step=state.step + 1, params=params, ema_params=ema, opt_state=opt_state)
+
+
 def make_train_step(net, cfg: PolicyConfig, train_cfg: TrainConfig,
                     tx: optax.GradientTransformation) -> Callable[[TrainState, dict, jax.Array], tuple]:
     """Jitted ``step(state, batch, base_key) -> (state, metrics)``; ``state`` is donated.
@@ -89,19 +100,9 @@ def make_train_step(net, cfg: PolicyConfig, train_cfg: TrainConfig,
         grad_norm = optax.tree.norm(grads)
         finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
 
-        def update(state: TrainState) -> TrainState:
-            updates, opt_state = tx.update(grads, state.opt_state, state.params)
-            params = optax.apply_updates(state.params, updates)
-            new_step = state.step + 1
-            if train_cfg.ema:
-                ema = optax.incremental_update(params, state.ema_params, 1.0 - ema_decay(state.step, train_cfg))
-            else:
-                ema = params
-            return TrainState(step=new_step, params=params, ema_params=ema, opt_state=opt_state)
-
         # A branch, not a select over the whole state: the optimizer and EMA fuse into one in-place pass over the
         # donated buffers (a tree-wide ``where`` read old and new state again and took 3/4 of the update's time).
-        new = jax.lax.cond(finite, update, lambda s: s, state)
+        new = jax.lax.cond(finite, lambda s: apply_gradients(s, grads, tx, train_cfg), lambda s: s, state)
         metrics = {"loss": loss, "grad_norm": grad_norm, "lr": schedule(state.step), "finite": finite}
         return new, metrics
 
