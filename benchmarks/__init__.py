@@ -15,7 +15,9 @@ The benchmarks a user runs:
 - ``delay``: closed-loop success under inference delay (asynchronous execution, naive vs inpainting hand-over);
 - ``serving``: in-process, exported and websocket decisions, and load tests of the policy server;
 - ``profile``: where the sampler's and the train step's time goes, per model part (a ``jax.profiler`` trace);
-- ``profile_eval``: where one closed-loop evaluation's time goes; the compacted rollout against the vmapped one.
+- ``profile_eval``: where one closed-loop evaluation's time goes; the compacted rollout against the vmapped one;
+- ``roofline``: the train step stage by stage (encoder, denoiser, optimizer) against the machine's measured matmul
+  peak and bandwidth, for point-cloud and image policies.
 
 ``benchmarks.studies`` holds the finished before / after studies, whose answers PERFORMANCE.md states (their JSON
 in ``benchmarks/studies/results/``). Shared pieces: ``common`` (benchmark policies, timing, FLOPs, machine peaks,
@@ -23,3 +25,9 @@ JSON output), ``machine`` (the CPU model, cores, load and peaks every JSON recor
 (``python -m benchmarks.report --notes benchmarks/results/notes_cpu.md`` assembles
 ``benchmarks/results/PERFORMANCE.md`` from the JSONs and the notes).
 """
+
+from hipolicy_jax.host_memory import keep_freed_memory
+
+# A benchmark measures what an entry point's process does (``runs.cli.prepare_process``): glibc keeps freed memory.
+# Importing this package sets it, before any benchmark's first JAX computation.
+keep_freed_memory()

@@ -20,6 +20,9 @@ SECTIONS = (("sampling", "One-call N-sample latency (the paper's sample-times ta
             ("optimisation", "Sampler optimisations, before / after (interleaved, one run)"),
             ("convolutions", "Short-sequence U-Net convolutions, before / after (interleaved, one run)"),
             ("train_step", "Train-step throughput"),
+            ("point_encoder", "Point-cloud train step: written backward and kept host memory, before / after "
+                              "(interleaved, one run)"),
+            ("roofline", "The train step against the roofline, stage by stage (point clouds and images)"),
             ("sampling_shapes", "One-call N-sample latency at the PyTorch comparison's shapes (paper size)"),
             ("train_step_shapes", "Train-step throughput at the PyTorch comparison's shapes (paper size)"),
             ("compute_dtype", "Throughput changes, before / after (interleaved, one run)"),

@@ -41,7 +41,7 @@ from hipolicy_jax.deploy.export import export_backend
 from hipolicy_jax.deploy.server import ServerConfig
 from hipolicy_jax.models.policy_net import init_policy_params
 from hipolicy_jax.campaigns.budgets import BUDGETS
-from hipolicy_jax.runs.cli import enable_compilation_cache
+from hipolicy_jax.runs.cli import prepare_process
 
 NAME = "serving"
 TARGET_THROUGHPUT = 1.4  # requests/s of N clients over one client's
@@ -164,7 +164,7 @@ def summarize(raws: list[dict], clients: int, requests: int, **about) -> dict:
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
-    enable_compilation_cache()
+    prepare_process()
     backend, source = make_backend(args.run)
     meta = backend.metadata
     rng = np.random.default_rng(0)

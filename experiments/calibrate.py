@@ -29,7 +29,7 @@ from typing import Literal
 from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.evaluation.plots import text_histogram
 from hipolicy_jax.runs.calibrate import calibrate_run
-from hipolicy_jax.runs.cli import enable_compilation_cache, run_main
+from hipolicy_jax.runs.cli import prepare_process, run_main
 from hipolicy_jax.runs.store import load_run
 
 
@@ -72,5 +72,5 @@ def main(args: CalibrateArgs) -> dict:
 
 
 if __name__ == "__main__":
-    enable_compilation_cache()
+    prepare_process()
     run_main(CalibrateArgs, main, __doc__)

@@ -22,7 +22,7 @@ from tqdm import tqdm
 from hipolicy_jax import envs
 from hipolicy_jax.envs import camera as camera_lib
 from hipolicy_jax.envs import demos
-from hipolicy_jax.runs.cli import enable_compilation_cache
+from hipolicy_jax.runs.cli import prepare_process
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -70,5 +70,5 @@ def main(argv=None) -> str:
 
 
 if __name__ == "__main__":
-    enable_compilation_cache()
+    prepare_process()
     main()

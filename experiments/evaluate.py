@@ -33,7 +33,7 @@ from typing import Literal
 
 from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.envs.external import is_external
-from hipolicy_jax.runs.cli import enable_compilation_cache, run_main
+from hipolicy_jax.runs.cli import prepare_process, run_main
 from hipolicy_jax.runs.evaluate import evaluate_run
 from hipolicy_jax.runs.external import evaluate_report
 from hipolicy_jax.runs.store import load_run, with_compute_dtype
@@ -110,5 +110,5 @@ def main(args: EvaluateArgs) -> dict:
 
 
 if __name__ == "__main__":
-    enable_compilation_cache()
+    prepare_process()
     run_main(EvaluateArgs, main, __doc__)

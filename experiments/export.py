@@ -16,7 +16,7 @@ import dataclasses
 from hipolicy_jax.config import InferenceConfig
 from hipolicy_jax.runs.serve import run_backend
 from hipolicy_jax.deploy.export import export_backend
-from hipolicy_jax.runs.cli import enable_compilation_cache, run_main
+from hipolicy_jax.runs.cli import prepare_process, run_main
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,5 +39,5 @@ def main(args: ExportArgs) -> dict:
 
 
 if __name__ == "__main__":
-    enable_compilation_cache()
+    prepare_process()
     run_main(ExportArgs, main, __doc__)

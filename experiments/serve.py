@@ -22,7 +22,7 @@ from hipolicy_jax.deploy import protocol
 from hipolicy_jax.deploy.backend import ExportedBackend
 from hipolicy_jax.runs.serve import run_backend
 from hipolicy_jax.deploy.server import API_KEY_ENV, PolicyServer, ServerConfig
-from hipolicy_jax.runs.cli import enable_compilation_cache, run_main
+from hipolicy_jax.runs.cli import prepare_process, run_main
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,5 +62,5 @@ def main(args: ServeArgs) -> None:
 
 
 if __name__ == "__main__":
-    enable_compilation_cache()
+    prepare_process()
     run_main(ServeArgs, main, __doc__)

@@ -24,7 +24,7 @@ import tyro
 import zarr
 from tqdm import tqdm
 
-from hipolicy_jax.runs.cli import enable_compilation_cache
+from hipolicy_jax.runs.cli import prepare_process
 from hipolicy_jax.speedup.config import SpeedupConfig
 from hipolicy_jax.speedup.plot import plot_episode
 from hipolicy_jax.speedup.stage import SpeedupResult, load_demos, speedup_demos
@@ -114,5 +114,5 @@ def cli(argv: list[str] | None = None) -> SpeedupResult:
 
 
 if __name__ == "__main__":
-    enable_compilation_cache()
+    prepare_process()
     cli()

@@ -15,7 +15,7 @@ import tyro
 import sys
 
 from hipolicy_jax import parallel
-from hipolicy_jax.runs.cli import enable_compilation_cache
+from hipolicy_jax.runs.cli import prepare_process
 from hipolicy_jax.runs.lock import RunLockedError
 from hipolicy_jax.runs.train import RunConfig, main
 from hipolicy_jax.trainer import CheckpointWriteError, TrainingInterrupted
@@ -31,7 +31,7 @@ def _quiet_unraisable(hook):
 
 if __name__ == "__main__":
     sys.unraisablehook = _quiet_unraisable(sys.unraisablehook)
-    enable_compilation_cache()
+    prepare_process()
     parallel.initialize_distributed()  # multi-process training when the launcher set JAX_COORDINATOR_ADDRESS
     try:
         main(tyro.cli(RunConfig, description=__doc__))

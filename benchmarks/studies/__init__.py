@@ -14,6 +14,8 @@ machine and writes ``benchmarks/studies/results/<name>_<device>.json`` (``common
   bfloat16);
 - ``small_matmul``: the N = 1 latency's bound, XLA's CPU dot with few rows against the read bandwidth;
 - ``checkpoint_load``: what verifying the checkpoint checksums costs a load;
+- ``point_encoder``: the point-cloud train step with DP3's PointNet backward written out and glibc keeping freed
+  memory, against the module autodiff and glibc's defaults, interleaved, with the loss trajectories side by side;
 - ``pytorch_peer``: Diffusion Policy's 1D U-Net in plain PyTorch, timed on this machine (needs torch, not a
   dependency; the JAX side is ``benchmarks.sampling`` / ``benchmarks.train_step --shapes``).
 """

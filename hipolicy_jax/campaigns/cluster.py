@@ -149,9 +149,9 @@ class RunJob(submitit.helpers.Checkpointable):
 
     def __call__(self) -> list[tuple[str, str]]:
         from hipolicy_jax.campaigns.tables import campaign_shard
-        from hipolicy_jax.runs.cli import enable_compilation_cache
+        from hipolicy_jax.runs.cli import prepare_process
 
-        enable_compilation_cache()
+        prepare_process()
         args = dataclasses.replace(self.args, progress=False)  # a log file: a line a finished evaluation, no bars
         print(f"[cluster] {time.strftime('%Y-%m-%d %H:%M:%S')} {self.run_dir} on {socket.gethostname()}"
               + (f" (job {scheduler_job()})" if scheduler_job() else ""), flush=True)

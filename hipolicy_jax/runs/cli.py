@@ -1,7 +1,8 @@
 """What the entry points share: the command-line parsing of those that act on a trained run
 (``experiments.evaluate``, ``experiments.calibrate``, ...: their ``--inference.*`` flags default to the run's stored
 settings), of those that build tables (``experiments.paper``, ``experiments.metaworld``: ``table_cli``) and the
-persistent compilation cache every entry point turns on."""
+process set-up every entry point does first (``prepare_process``: the persistent compilation cache and glibc keeping
+freed memory)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from typing import Callable, TypeVar
 import jax
 import tyro
 
+from hipolicy_jax.host_memory import keep_freed_memory
 from hipolicy_jax.runs.store import read_inference, resolve_run
 
 T = TypeVar("T")
@@ -43,6 +45,14 @@ def enable_compilation_cache() -> str | None:
         path = default_cache_dir()
         jax.config.update("jax_compilation_cache_dir", path)
     return path
+
+
+def prepare_process() -> str | None:
+    """What every entry point does before its first JAX computation: glibc keeps freed memory for the next step
+    (``host_memory.keep_freed_memory``) and compiled programs are kept on disk (``enable_compilation_cache``).
+    → the compilation cache's folder, or None when off."""
+    keep_freed_memory()
+    return enable_compilation_cache()
 
 
 def parse_with_run_inference(cls: type[T], argv: list[str] | None = None, description: str | None = None) -> T:
@@ -96,9 +106,9 @@ def table_cli(subcommands: dict[str, type], build: Callable[[object], str], desc
 
 
 def run_table_cli(parse_args: Callable, main: Callable, argv: list[str] | None = None) -> None:
-    """An entry point's ``__main__``: the compilation cache on, then ``main(parse_args(argv))``; a bad value or a
+    """An entry point's ``__main__``: ``prepare_process()``, then ``main(parse_args(argv))``; a bad value or a
     missing file ends the program with its one-line message instead of a traceback."""
-    enable_compilation_cache()
+    prepare_process()
     try:
         main(parse_args(sys.argv[1:] if argv is None else argv))
     except (ValueError, FileNotFoundError) as e:
