@@ -7,8 +7,9 @@ points × 256 channels = 201 MB per activation) then spends most of its time in 
 one such array took 60 ms, 49,153 page faults, instead of 6 ms (``benchmarks.roofline``, PERFORMANCE.md).
 
 ``keep_freed_memory()`` tells glibc (``mallopt``) to serve every allocation from one arena's heap (``M_ARENA_MAX``
-1, ``M_MMAP_MAX`` 0) and never to give freed memory back (``M_TRIM_THRESHOLD`` 2 GiB): the second step reuses the
-first step's pages. The numbers a program computes do not change; its resident memory stays at its peak. Call it
+1, ``M_MMAP_MAX`` 0) and never to give freed memory back (``M_TRIM_THRESHOLD`` the largest value): once the heap
+has grown to a step's size (two steps), a step reuses the pages of the one before. The numbers a program computes
+do not change; its resident memory stays at its peak. Call it
 before the first JAX computation (the arena limit only binds threads that have not allocated yet); every entry
 point does (``runs.cli.prepare_process``). ``HIPOLICY_KEEP_FREED_MEMORY=0`` turns it off. Elsewhere than glibc
 (macOS, musl) it does nothing.

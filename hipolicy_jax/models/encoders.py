@@ -249,13 +249,23 @@ def _layer_norm_stats(y: jax.Array, eps: float) -> tuple[jax.Array, jax.Array]:
     return mean, jax.lax.rsqrt(var + eps)
 
 
+def _normed(y, mean, rstd, scale, shift):
+    """The LayerNorm's output, rounded as ``nn.LayerNorm`` rounds it (the ReLU's input)."""
+    return (y - mean) * (rstd * scale) + shift
+
+
+def _rows(v: jax.Array) -> jax.Array:
+    """``(..., C) -> (points, C)``."""
+    return v.reshape(-1, v.shape[-1])
+
+
 def _trunk_forward(points, layers, eps):
     """The per-point MLP: (activations of the last layer, every layer's pre-norm output, means, inverse stds)."""
     a, ys, means, rstds = points, [], [], []
     for kernel, bias, scale, shift in layers:
         y = jnp.dot(a, kernel) + bias
         mean, rstd = _layer_norm_stats(y, eps)
-        a = jax.nn.relu((y - mean) * (rstd * scale) + shift)
+        a = jax.nn.relu(_normed(y, mean, rstd, scale, shift))
         ys.append(y)
         means.append(mean)
         rstds.append(rstd)
@@ -295,21 +305,20 @@ def _trunk_bwd(eps, residuals, g_pooled):
     for i in reversed(range(len(layers))):
         kernel, _, scale, shift = layers[i]
         normed = (ys[i] - means[i]) * rstds[i]
-        g_z = jnp.where((ys[i] - means[i]) * (rstds[i] * scale) + shift > 0, g_a, 0.0)  # the forward's ReLU input
+        g_z = jnp.where(_normed(ys[i], means[i], rstds[i], scale, shift) > 0, g_a, 0.0)  # the forward's ReLU
         g_normed = g_z * scale
         g_y = rstds[i] * (g_normed - jnp.mean(g_normed, -1, keepdims=True)
                           - normed * jnp.mean(g_normed * normed, -1, keepdims=True))
-        if i > 0:
-            k_prev, _, s_prev, b_prev = layers[i - 1]
-            a_in = jax.nn.relu((ys[i - 1] - means[i - 1]) * (rstds[i - 1] * s_prev) + b_prev)
+        if i > 0:  # the layer's input: the previous layer's activations, recomputed
+            _, _, s_prev, b_prev = layers[i - 1]
+            a_in = jax.nn.relu(_normed(ys[i - 1], means[i - 1], rstds[i - 1], s_prev, b_prev))
         else:
             a_in = points
         # the parameters' gradients sum over every point: as (points, features) matrices, so that the kernel's is
         # one plain matmul (contracting the leading axes in place made XLA copy both operands first)
-        flat = lambda v: v.reshape(-1, v.shape[-1])  # noqa: E731
-        g_flat = flat(g_y)
-        grads[i] = (jnp.dot(flat(a_in).T, g_flat), jnp.sum(g_flat, axis=0), jnp.sum(flat(g_z * normed), axis=0),
-                    jnp.sum(flat(g_z), axis=0))
+        g_rows = _rows(g_y)
+        grads[i] = (jnp.dot(_rows(a_in).T, g_rows), jnp.sum(g_rows, axis=0), jnp.sum(_rows(g_z * normed), axis=0),
+                    jnp.sum(_rows(g_z), axis=0))
         g_a = jnp.dot(g_y, kernel.T)  # at i = 0: the points' gradient (dropped when the points are data)
     return g_a, tuple(grads)
 
